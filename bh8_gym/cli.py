@@ -1,0 +1,55 @@
+"""The `bh8` console command.
+
+Each subcommand lives in its own module, which provides `configure_parser(parser)` and
+`run(args) -> int`; modules are imported only when their subcommand runs, so `bh8 term` does not
+pay for PyBullet and `bh8 serve` does not pay for torch.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+SUBCOMMANDS = {
+    "serve": ("bh8_gym.virtual_serial", "serve the simulated hand's firmware on a pseudo-terminal"),
+    "term": ("bh8_gym.terminal", "interactive GCL terminal for a real or simulated hand"),
+    "render": ("bh8_gym.rendering", "render the simulated hand to a PNG"),
+    "train": ("bh8_gym.agents.train", "train a grasp policy (PPO or SAC)"),
+    "eval": ("bh8_gym.agents.evaluate", "evaluate a policy or a scripted baseline"),
+    "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),
+    "deploy": ("bh8_gym.agents.deploy", "run a policy closed-loop on a hand over a serial port"),
+}
+
+
+def build_parser(load_subcommands: list[str] | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bh8",
+        description="BarrettHand BH8-262 simulator, firmware emulator, serial tools and grasp agents.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, summary) in SUBCOMMANDS.items():
+        child = sub.add_parser(name, help=summary, description=summary)
+        if load_subcommands is None or name in load_subcommands:
+            module = importlib.import_module(module_name)
+            module.configure_parser(child)
+            child.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = [a for a in argv if a in SUBCOMMANDS][:1]
+    # Only the chosen subcommand's module is imported; `bh8 --help` lists them all cheaply.
+    parser = build_parser(load_subcommands=chosen)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args._module.run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
