@@ -1,0 +1,139 @@
+"""Scripted grasps a BH8 user would write, evaluated by the same code on the same objects.
+
+`SupervisoryBaseline`: leave LOOP, set the spread for the object (SM), close with TC (or C), then
+re-enter LOOP with zero velocity and zero gain (the finger worm drives hold the grasp unpowered,
+SPEC.md §1) while the arm lifts. Every command is GCL bytes written to the env's firmware, as a
+host would send them over the cable.
+
+`LoopBaseline`: the same grasp through RealTime LOOP as a policy on the env's float action space:
+spread driven to the object's setting by a proportional law on LFAP, then constant closing
+velocity bytes with a constant gain on the fingers (the gain byte sets the grasp force, §6.1).
+
+Spread settings: F1/F2 opposite F3 (spread 0) for boxes, cylinders, capsules and mesh/URDF
+objects (a two-against-one wrap); a tripod (spread 60 degrees) for spheres.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from bh8_gym.agents.evaluate import episode_object
+from bh8_gym.envs.wrappers import bytes_to_unit
+
+SPREAD_COUNTS_PER_DEGREE = 17.5  # BH8-262, SPEC.md §1
+SPREAD_DEGREES = {"sphere": 60.0}  # every other object kind: 0 (fingers opposite F3)
+FINGER_MOTORS = (1, 2, 3)
+SPREAD_MOTOR = 4
+
+
+def spread_counts_for(spec) -> int:
+    """The spread a BH8 user would set for the object (encoder counts)."""
+    kind = getattr(spec, "kind", None)
+    return int(round(SPREAD_DEGREES.get(kind, 0.0) * SPREAD_COUNTS_PER_DEGREE))
+
+
+class LoopBaseline:
+    """Constant closing velocity and gain on the fingers; P control of the spread on LFAP.
+
+    Byte values: `close_velocity` LCV (×LCVC/16 counts per sample; 48 at LCVC 1 is 3 counts per
+    256 µs sample, ~11,700 counts/s, closing the fingers in ~1.5 s, near App. A's 1 s at default
+    speed), `gain` LCPG (force at stall ∝ gain × velocity error, §6.1), `spread_gain` bytes of LCV
+    per count of spread error, `spread_tolerance` counts within which the fingers start closing.
+    """
+
+    def __init__(self, env, close_velocity: int = 48, gain: int = 40, spread_gain: float = 0.1,
+                 spread_tolerance: int = 30):
+        base = env.unwrapped
+        self.layout = base.layout
+        self.close_velocity, self.gain = int(close_velocity), int(gain)
+        self.spread_gain, self.spread_tolerance = float(spread_gain), int(spread_tolerance)
+        space = base.action_space  # the env's byte space; the policy speaks floats of ContinuousActions
+        self._low = space.low.astype(np.float64)
+        self._high = space.high.astype(np.float64)
+        self._control_fields = self.layout.control_fields
+        self._spread_position = next((i for i, (m, name) in enumerate(self.layout.feedback_fields)
+                                      if m == SPREAD_MOTOR and name == "LFAP"), None)
+        self._bytes = np.zeros(len(self._control_fields), dtype=np.int64)
+        self.reset(env)
+
+    def reset(self, env) -> None:
+        self.spread_target = spread_counts_for(episode_object(env))
+        self.spread_position = 0  # HI leaves the spread at 0 (SPEC.md §4)
+
+    def act(self, observation, info=None) -> np.ndarray:
+        block = (info or {}).get("feedback_block")
+        if block and self._spread_position is not None:
+            self.spread_position = self.layout.decode_feedback(block)[self._spread_position]
+        spread_error = self.spread_target - self.spread_position
+        spread_ready = abs(spread_error) <= self.spread_tolerance
+        for index, (motor, name) in enumerate(self._control_fields):
+            if motor == SPREAD_MOTOR:
+                value = (int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV"
+                         else self.gain)
+            else:
+                value = (self.close_velocity if spread_ready else 0) if name == "LCV" else self.gain
+            self._bytes[index] = value
+        return bytes_to_unit(self._bytes, self._low, self._high)
+
+
+class SupervisoryBaseline:
+    """SM (spread), GTC or GC, then hold (LOOP, zero velocity and gain) while the arm lifts."""
+
+    def __init__(self, env, close_command: str = "GTC"):
+        if close_command not in ("GTC", "GC"):
+            raise ValueError(f"close_command must be 'GTC' or 'GC', got {close_command!r}")
+        self.close_command = close_command
+        base = env.unwrapped
+        self.loop_command = base.loop_command
+        self._hold = np.zeros(base.action_space.shape, dtype=np.float32)
+        # zero velocity and zero gain (LCPG 0 = no torque, SPEC.md §5) in the float action space
+        self._hold[:] = bytes_to_unit(np.zeros(base.action_space.shape), base.action_space.low.astype(float),
+                                      base.action_space.high.astype(float))
+
+    def _command(self, firmware, line: str) -> bytes:
+        reply = firmware.transact(line.encode("ascii") + b"\r")
+        if b"ERR" in reply and not line.startswith("\x03"):
+            raise RuntimeError(f"supervisory baseline: {line!r} failed: {reply!r}")
+        return reply
+
+    def run_episode(self, env, seed: int, tracker, frames=None, every: int = 1):
+        """One episode: returns (return, steps, last info, supervisory seconds, grasp seconds)."""
+        obs, info = env.reset(seed=seed)
+        base = env.unwrapped
+        firmware = base.firmware
+        if frames is not None:
+            frames.append(env.render())
+        start = firmware.time
+        firmware.transact(b"\x03")  # leave LOOP: the hand answers with a prompt
+        spread = spread_counts_for(episode_object(env))
+        self._command(firmware, f"SM {spread}")
+        self._command(firmware, self.close_command)
+        grasp_seconds = firmware.time - start
+        if tracker is not None:
+            strains = self._command(firmware, "GFGET SG").split(b"\n\r")[1].split()
+            tracker.observe_strains(np.array([int(s) for s in strains]))
+        firmware.write(self.loop_command.encode("ascii") + b"\r")
+        firmware.run_until_idle()
+        firmware.read()
+        # The arm waits for the close (a user's script lifts after C returns): move the arm's clock
+        # so its schedule is at the start of the lift.
+        base.scene.start_time = firmware.time - base.scene.arm.grasp_seconds
+        total, steps, done = 0.0, 0, False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(self._hold)
+            if tracker is not None:
+                tracker.observe(info.get("feedback_block"))
+            total += float(reward)
+            steps += 1
+            done = terminated or truncated
+            if frames is not None and (steps % every == 0 or done):
+                frames.append(env.render())
+        return total, steps, info, grasp_seconds, grasp_seconds
+
+
+def make_baseline(name: str, env):
+    """'supervisory' or 'loop' for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
+    if name == "supervisory":
+        return SupervisoryBaseline(env)
+    if name == "loop":
+        return LoopBaseline(env)
+    raise ValueError(f"baseline must be 'supervisory' or 'loop', got {name!r}")

@@ -1,0 +1,115 @@
+"""SB3 callbacks for `bh8 train`: held-out evaluation with best-model keeping, atomic checkpoints,
+and a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency)."""
+from __future__ import annotations
+
+import csv
+
+from stable_baselines3.common.callbacks import BaseCallback
+
+
+class EvaluationCallback(BaseCallback):
+    """Every `eval_freq` env steps: evaluate the deterministic policy on the held-out env, log it
+    (TensorBoard and evaluations.csv), and keep the best model (success rate, then mean return).
+
+    `state` (best scores, next evaluation step) is shared with the checkpoint writer so a resumed
+    run neither repeats nor skips evaluations and keeps comparing against the same best.
+    """
+
+    def __init__(self, trainer, state: dict, eval_freq: int, n_episodes: int, eval_seed: int):
+        super().__init__()
+        if eval_freq < 1 or n_episodes < 1:
+            raise ValueError(f"eval freq and episodes must be positive, got {eval_freq}, {n_episodes}")
+        self.trainer = trainer
+        self.state = state
+        self.eval_freq = eval_freq
+        self.n_episodes = n_episodes
+        self.eval_seed = eval_seed
+        self._env = None
+        self._csv_path = trainer.out_dir / "evaluations.csv"
+        if state.get("next_evaluation", 0) <= 0:
+            state["next_evaluation"] = eval_freq
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.state["next_evaluation"]:
+            self.evaluate()
+            self.state["next_evaluation"] += self.eval_freq * (
+                1 + (self.num_timesteps - self.state["next_evaluation"]) // self.eval_freq)
+        return True
+
+    def evaluate(self) -> dict:
+        from bh8_gym.agents.env_factory import make_env
+        from bh8_gym.agents.evaluate import run_episodes, summarize
+        from bh8_gym.agents.train import EVALUATION_COLUMNS, save_model_atomic
+
+        config = self.trainer.config
+        if self._env is None:
+            self._env = make_env(config["env_id"], config["eval_env_kwargs"])
+        # Same seeds at every evaluation: the curve compares policies, not episode draws.
+        results = run_episodes(self.model, self._env, self.n_episodes, seed=self.eval_seed)
+        summary = summarize(results)
+        row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
+        new_file = not self._csv_path.exists()
+        with self._csv_path.open("a", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=EVALUATION_COLUMNS)
+            if new_file:
+                writer.writeheader()
+            writer.writerow(row)
+        for key in ("success_rate", "mean_return", "mean_length"):
+            self.logger.record(f"eval/{key}", summary[key])
+        score = (summary["success_rate"], summary["mean_return"])
+        if score > (self.state["best_success_rate"], self.state["best_mean_return"]):
+            self.state["best_success_rate"], self.state["best_mean_return"] = score
+            self.state["best_timesteps"] = self.num_timesteps
+            save_model_atomic(self.model, self.trainer.out_dir / "best_model.zip")
+        return summary
+
+    def _on_training_end(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
+
+
+class CheckpointCallback(BaseCallback):
+    """Every `checkpoint_freq` env steps: the trainer's atomic checkpoint (model, buffer, state)."""
+
+    def __init__(self, trainer, state: dict, checkpoint_freq: int):
+        super().__init__()
+        if checkpoint_freq < 1:
+            raise ValueError(f"checkpoint_freq must be positive, got {checkpoint_freq}")
+        self.trainer = trainer
+        self.state = state
+        self.checkpoint_freq = checkpoint_freq
+        self._next = None
+
+    def _on_training_start(self) -> None:
+        self._next = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self.trainer.save_checkpoint(self.model, self.state)
+            self._next = (self.num_timesteps // self.checkpoint_freq + 1) * self.checkpoint_freq
+        return True
+
+
+class ProgressBarCallback(BaseCallback):
+    """A tqdm bar over the run's total env steps, starting where a resumed run left off."""
+
+    def __init__(self, total_timesteps: int):
+        super().__init__()
+        self.total_timesteps = total_timesteps
+        self._bar = None
+
+    def _on_training_start(self) -> None:
+        from tqdm.auto import tqdm
+
+        self._bar = tqdm(total=self.total_timesteps, initial=self.num_timesteps, unit="step", dynamic_ncols=True)
+
+    def _on_step(self) -> bool:
+        # PPO collects whole rollouts, so the run may end a little past the requested total
+        if self.num_timesteps > self._bar.total:
+            self._bar.total = self.num_timesteps
+        self._bar.update(self.num_timesteps - self._bar.n)
+        return True
+
+    def _on_training_end(self) -> None:
+        self._bar.close()

@@ -1,0 +1,233 @@
+"""`bh8 deploy --port PORT --policy FILE`: run a policy closed-loop on a hand over a serial port.
+
+The sequence is what the environment does to its simulated firmware, sent through
+`bh8_gym.client.BarrettHand` to whatever is on the port (a real BH8-262, `bh8 serve`, bh8sim://):
+
+1. connect at `--baud` (the hand's current rate, 9600 after power-up), switch to the env's rate
+   with PSET BAUD (client.set_baud), then send the env's supervisory setup script (HI, the LOOP
+   flags and coefficients, LFT/LFDPD) and enter LOOP on the env's motors; the layout the hand
+   reports must equal the env's, or deploy refuses to run;
+2. every cycle: policy(observation) -> floats in [-1, 1] -> LOOP bytes with the env's own mapping
+   (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
+   block is decoded by the client's LoopLayout and turned into the next observation by the env's
+   observation builder (the same code the policy was trained on);
+3. stop on the cycle budget, Ctrl-C, a strain above `--max-strain` or a temperature above
+   `--max-temperature`: one last block with zero velocity, ^C to leave LOOP, then the exit
+   action (`--on-exit`, default "GT": finger power off; the worm drives hold the grasp unpowered,
+   SPEC.md §1, so nothing drops and nothing heats; "T": every motor off, the spread becomes
+   back-drivable; "none": leave LOOP only).
+
+Every control and feedback block is logged as one JSONL line (hex bytes, cycle, wall time).
+The arm phase in the observation follows the env's ArmSchedule from the first control block:
+the robot arm carrying the hand must run the same grasp/lift/hold schedule.
+Policies trained with privileged (simulation-only) observations are refused.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+
+EXIT_ACTIONS = ("GT", "T", "none")
+# The host clock the observation's elapsed time uses: wall seconds since the first block (a real
+# hand and arm), or cycles × the env's cycle time (an unpaced simulator, e.g. bh8sim://).
+CLOCKS = ("wall", "cycles")
+# Default safety limits. Strain: 8-bit gauge, no-load 100-140 (SPEC.md §1); 230 leaves headroom
+# below saturation (255) for a firm grasp. Temperature: the hand runs at 40-60 °C (§2); stop at 65.
+DEFAULT_MAX_STRAIN = 230
+DEFAULT_MAX_TEMPERATURE_C = 65.0
+# LCV byte limit (|LCV| ≤ this); 127 is the full signed-byte range, i.e. no clamp.
+DEFAULT_MAX_VELOCITY_BYTE = 100
+
+
+class DeployError(RuntimeError):
+    """A policy or hand that deploy refuses to run (the message says why)."""
+
+
+class SafetyStop(Exception):
+    """A safety limit tripped; the message names the limit and the reading."""
+
+
+def check_deployable(policy, env) -> None:
+    """Refuse privileged policies and policies whose observation size is not what a host builds."""
+    base = env.unwrapped
+    if policy.privileged or base.privileged:
+        raise DeployError("this policy was trained with privileged (simulation-only) observations; "
+                          "a real hand cannot provide them - retrain with privileged=False")
+    host_size = base.observation_from_feedback([0] * len(base.layout.feedback_fields),
+                                               [0] * len(base.layout.control_fields), 0.0).size
+    if policy.observation_dim != host_size:
+        raise DeployError(f"the policy expects {policy.observation_dim} observations but a host builds "
+                          f"{host_size} from a feedback block")
+
+
+class Deployment:
+    """A policy driving a `BarrettHand` in LOOP, cycle by cycle, with limits and a block log."""
+
+    def __init__(self, hand, policy, env, log_file, max_velocity: int = DEFAULT_MAX_VELOCITY_BYTE,
+                 max_strain: int = DEFAULT_MAX_STRAIN, max_temperature: float = DEFAULT_MAX_TEMPERATURE_C,
+                 on_exit: str = "GT", clock: str = "wall"):
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
+        if on_exit not in EXIT_ACTIONS:
+            raise ValueError(f"on_exit must be one of {EXIT_ACTIONS}, got {on_exit!r}")
+        if not 0 <= max_velocity <= 127:
+            raise ValueError(f"max_velocity must be an LCV byte magnitude 0..127, got {max_velocity!r}")
+        check_deployable(policy, env)
+        self.hand, self.policy, self.env = hand, policy, env
+        self.base = env.unwrapped
+        self.log_file = log_file
+        self.max_strain, self.max_temperature, self.on_exit = max_strain, max_temperature, on_exit
+        space = self.base.action_space
+        self._low = space.low.astype(np.float64)
+        self._high = space.high.astype(np.float64)
+        fields = self.base.layout.control_fields
+        is_velocity = np.array([name == "LCV" for _, name in fields])
+        self._center = (self._low + self._high) / 2.0
+        self._half = (self._high - self._low) / 2.0
+        self._clamp_low = np.where(is_velocity, np.maximum(self._low, -max_velocity), self._low)
+        self._clamp_high = np.where(is_velocity, np.minimum(self._high, max_velocity), self._high)
+        # LCV 0 and LCPG 0: no motion and no torque (SPEC.md §5); the block sent before leaving LOOP
+        self._stop_values = [0] * len(fields)
+        self._action = np.zeros(len(fields))
+        self.cycle_seconds = float(self.base.cycle_seconds)
+        self.clock = clock
+        self.layout = None
+        self.cycles = 0
+
+    def _log(self, record: dict) -> None:
+        self.log_file.write(json.dumps(record) + "\n")
+
+    def setup(self, baud_rate: int) -> None:
+        """Switch the rate, run the env's setup script, enter LOOP; check the layout agrees."""
+        hand = self.hand
+        if hand.baudrate != baud_rate:
+            hand.set_baud(baud_rate)
+            self._log({"event": "baud", "rate": baud_rate, "t": time.monotonic()})
+        for line in self.base.setup_commands:
+            if line.upper().startswith("PSET BAUD"):
+                continue  # done above by client.set_baud, which must switch the host's rate too
+            hand.command(line)
+            self._log({"event": "command", "line": line, "t": time.monotonic()})
+        loop_line = self.base.loop_command
+        self.layout = hand.start_loop(loop_line[: -len("LOOP")] or "GS")
+        self._log({"event": "loop", "line": loop_line, "layout": repr(self.layout), "t": time.monotonic()})
+        if self.layout != self.base.layout:
+            hand.stop_loop()
+            raise DeployError(f"the hand's LOOP layout {self.layout!r} is not the env's {self.base.layout!r}")
+
+    def _exchange(self, values, header: bytes = b"C"):
+        feedback = self.hand.update_raw(values, header)
+        self._log({"cycle": self.cycles, "t": time.monotonic(),
+                   "control": self.hand.last_control_block.hex(), "feedback": self.hand.last_feedback_block.hex()})
+        self.cycles += 1
+        return feedback
+
+    def _check_limits(self, feedback) -> None:
+        for motor, data in feedback.motors.items():
+            if motor != 4 and data.strain is not None and data.strain > self.max_strain:
+                raise SafetyStop(f"motor {motor} strain {data.strain} above the limit {self.max_strain}")
+        if feedback.temperature is not None and feedback.temperature > self.max_temperature:
+            raise SafetyStop(f"temperature {feedback.temperature:.1f} C above the limit {self.max_temperature} C")
+
+    def run(self, cycles: int) -> str:
+        """Run up to `cycles` policy cycles; returns why it stopped. Always leaves the hand safe."""
+        if cycles < 1:
+            raise ValueError(f"cycles must be positive, got {cycles!r}")
+        reason = "done"
+        previous = np.zeros(len(self._stop_values), dtype=np.int64)
+        try:
+            # Like the env's reset: an "A" block (no control data) gives the first observation and
+            # starts the host's clock.
+            feedback = self._exchange((), header=b"A")
+            start = time.monotonic()
+            observation = self.base.observation_from_feedback(feedback.values, previous, 0.0)
+            while self.cycles <= cycles:  # the "A" block was cycle 0
+                self._check_limits(feedback)
+                unit, _ = self.policy.predict(observation, deterministic=True)
+                np.clip(np.rint(self._center + self._half * np.clip(unit, -1.0, 1.0)),
+                        self._clamp_low, self._clamp_high, out=self._action)
+                previous[:] = self._action
+                feedback = self._exchange(previous.tolist())
+                elapsed = (self.cycles - 1) * self.cycle_seconds if self.clock == "cycles" else time.monotonic() - start
+                observation = self.base.observation_from_feedback(feedback.values, previous, elapsed)
+            self._check_limits(feedback)
+        except SafetyStop as stop:
+            reason = f"safety stop: {stop}"
+        except KeyboardInterrupt:
+            reason = "interrupted (Ctrl-C)"
+        finally:
+            self.finish()
+        self._log({"event": "stop", "reason": reason, "cycles": self.cycles, "t": time.monotonic()})
+        return reason
+
+    def finish(self) -> None:
+        """Zero velocity, leave LOOP, then the exit action (also after Ctrl-C or a limit)."""
+        hand = self.hand
+        if hand.in_loop:
+            try:
+                self._exchange(self._stop_values)
+            finally:
+                hand.stop_loop()
+        if self.on_exit != "none":
+            hand.command(self.on_exit, check=False)
+            self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, help="serial port or pyserial URL (e.g. /dev/ttyUSB0, bh8sim://)")
+    parser.add_argument("--policy", required=True, type=Path, help="policy file (.npz export or SB3 .zip)")
+    parser.add_argument("--baud", type=int, default=9600, help="the hand's current rate (default 9600)")
+    parser.add_argument("--cycles", type=int, default=None, help="cycles to run (default: one env episode)")
+    parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"), help="JSONL block log")
+    parser.add_argument("--max-velocity", type=int, default=DEFAULT_MAX_VELOCITY_BYTE, help="|LCV| limit (bytes)")
+    parser.add_argument("--max-strain", type=int, default=DEFAULT_MAX_STRAIN, help="finger strain limit (0-255)")
+    parser.add_argument("--max-temperature", type=float, default=DEFAULT_MAX_TEMPERATURE_C, help="degrees C")
+    parser.add_argument("--clock", choices=CLOCKS, default="wall",
+                        help="elapsed time in the observation: wall clock (real hand) or cycles x cycle time")
+    parser.add_argument("--on-exit", choices=EXIT_ACTIONS, default="GT",
+                        help="after leaving LOOP: GT fingers off (default), T all motors off, none")
+
+
+def run(args: argparse.Namespace) -> int:
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.client import BarrettHand
+    from bh8_gym.status import BH8Error
+
+    try:
+        policy = load_policy(args.policy)
+        env_id = policy.metadata.get("env_id")
+        if env_id is None:
+            raise DeployError(f"{str(args.policy)!r} does not name its environment; export it with `bh8 export`")
+        env = make_env(env_id, policy.metadata.get("env_kwargs", {}))
+        try:
+            check_deployable(policy, env)
+        except DeployError:
+            env.close()
+            raise
+    except (PolicyFileError, FileNotFoundError, DeployError, ValueError) as exc:
+        print(f"bh8 deploy: {exc}", file=sys.stderr)
+        return 2
+    try:
+        # default: one episode of the env's simulated clock
+        cycles = args.cycles or math.ceil(env.unwrapped.episode_seconds / env.unwrapped.cycle_seconds)
+        with args.log.open("w") as log_file, BarrettHand(args.port, baudrate=args.baud) as hand:
+            deployment = Deployment(hand, policy, env, log_file, max_velocity=args.max_velocity,
+                                    max_strain=args.max_strain, max_temperature=args.max_temperature,
+                                    on_exit=args.on_exit, clock=args.clock)
+            deployment.setup(env.unwrapped.baud)
+            reason = deployment.run(cycles)
+    except (DeployError, BH8Error, ValueError) as exc:
+        print(f"bh8 deploy: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        env.close()
+    print(f"bh8 deploy: {deployment.cycles} cycles, stopped: {reason}; log in {args.log}")
+    return 0 if reason == "done" else 3

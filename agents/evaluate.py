@@ -1,0 +1,355 @@
+"""`bh8 eval`: success rate (95% Wilson CI), per-object table, grasp time, peak strain, a
+training-curve plot and a GIF of sample episodes, for a trained policy (SB3 .zip or exported
+.npz) or a scripted baseline (`--baseline supervisory|loop`), on the held-out objects or on
+object files the user names.
+
+Metrics per episode:
+  success     `info["is_success"]` at the episode's last step (the env decides: object lifted
+              clear of the table and touching the hand).
+  grasp time  simulated seconds from reset until the fingers stop closing: the first cycle at
+              which every LOOP finger motor reports a strain rise of at least
+              `GRASP_STRAIN_RISE` over its value at reset (contact load); episodes that never
+              load all fingers have no grasp time and are left out of the mean.
+  peak strain the largest LFS any finger reported during the episode (8-bit, §6.2.2).
+Strain comes from decoding each step's `info["feedback_block"]` with the env's LoopLayout, i.e.
+the bytes a real hand would send.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+# 95% two-sided normal quantile
+Z_95 = 1.959963984540054
+# LFS counts above the no-load reading that mean a finger is loaded by contact. No-load readings
+# are 100-140 with per-finger offsets (SPEC.md §1), so the rise is measured from each finger's own
+# reading at reset; 8 counts is well above the gauge's quantisation and below any real grasp load.
+GRASP_STRAIN_RISE = 8
+
+
+def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (default 95%)."""
+    if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
+        raise ValueError(f"trials must be a positive integer, got {trials!r}")
+    if isinstance(successes, bool) or not isinstance(successes, (int, np.integer)) or not 0 <= successes <= trials:
+        raise ValueError(f"successes must be an integer in 0..{trials}, got {successes!r}")
+    if not (z > 0 and math.isfinite(z)):
+        raise ValueError(f"z must be positive and finite, got {z!r}")
+    p = successes / trials
+    z2 = z * z
+    denominator = 1.0 + z2 / trials
+    centre = (p + z2 / (2 * trials)) / denominator
+    half = z * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials)) / denominator
+    # The ends are exact at 0 and n successes; the formula would leave rounding residue there.
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return low, high
+
+
+@dataclass
+class EpisodeResult:
+    object_name: str
+    success: bool
+    episode_return: float
+    length: int
+    sim_seconds: float
+    grasp_time: float | None
+    peak_strain: int | None
+
+
+def episode_object(env):
+    """The ObjectSpec of the env's current episode (None for envs without objects)."""
+    return getattr(getattr(env.unwrapped.scene, "episode", None), "spec", None)
+
+
+def object_name(spec) -> str:
+    """A readable name for an episode's object (file stem, or primitive kind and size in cm)."""
+    if spec is None:
+        return "(no object)"
+    if getattr(spec, "name", ""):
+        return spec.name
+    size = "x".join(f"{s * 100:.1f}" for s in spec.size)
+    return f"{spec.kind} {size}cm"
+
+
+class StrainTracker:
+    """Follows the finger strain gauges through an episode's feedback blocks."""
+
+    def __init__(self, layout):
+        self.layout = layout
+        self.indices = [i for i, (motor, name) in enumerate(layout.feedback_fields)
+                        if name == "LFS" and motor in (1, 2, 3)]
+        self.reset()
+
+    def reset(self) -> None:
+        self.baseline = None
+        self.peak = None
+        self.grasp_cycle = None
+        self.cycles = 0
+
+    def observe(self, feedback_block: bytes | None) -> None:
+        """One RealTime cycle's feedback block."""
+        self.cycles += 1
+        if not self.indices or not feedback_block:
+            return
+        values = self.layout.decode_feedback(feedback_block)
+        self.observe_strains(np.array([values[i] for i in self.indices]))
+
+    def observe_strains(self, strains: np.ndarray) -> None:
+        """Finger strain readings (from a feedback block, or FGET SG in supervisory mode)."""
+        if self.baseline is None:
+            self.baseline = strains
+        peak = int(strains.max())
+        self.peak = peak if self.peak is None else max(self.peak, peak)
+        if self.grasp_cycle is None and np.all(strains - self.baseline >= GRASP_STRAIN_RISE):
+            self.grasp_cycle = self.cycles
+
+
+def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: bool = True,
+                 baseline=None) -> list[EpisodeResult]:
+    """Run `n_episodes` (seeds seed, seed+1, ...) with `policy.predict` or a scripted `baseline`.
+
+    `env`: a single env (see env_factory.make_env). `baseline`: an object with
+    `run_episode(env, seed) -> (return, length, info)` for baselines that use supervisory GCL.
+    """
+    if n_episodes < 1:
+        raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
+    base = env.unwrapped
+    tracker = StrainTracker(base.layout)
+    cycle_seconds = float(base.cycle_seconds)
+    results = []
+    for episode in range(n_episodes):
+        tracker.reset()
+        if baseline is not None and hasattr(baseline, "run_episode"):
+            total, length, info, extra_seconds, grasp_time = baseline.run_episode(env, seed + episode, tracker)
+        else:
+            obs, info = env.reset(seed=seed + episode)
+            if baseline is not None:
+                baseline.reset(env)
+            total, length, done, extra_seconds = 0.0, 0, False, 0.0
+            while not done:
+                if baseline is not None:
+                    action = baseline.act(obs, info)
+                else:
+                    action, _ = policy.predict(obs, deterministic=deterministic)
+                obs, reward, terminated, truncated, info = env.step(action)
+                tracker.observe(info.get("feedback_block"))
+                total += float(reward)
+                length += 1
+                done = terminated or truncated
+            grasp_time = None if tracker.grasp_cycle is None else tracker.grasp_cycle * cycle_seconds
+        results.append(EpisodeResult(
+            object_name=object_name(episode_object(env)),
+            success=bool(info.get("is_success", False)),
+            episode_return=total,
+            length=length,
+            sim_seconds=length * cycle_seconds + extra_seconds,
+            grasp_time=grasp_time,
+            peak_strain=tracker.peak,
+        ))
+    return results
+
+
+def summarize(results: Sequence[EpisodeResult]) -> dict[str, Any]:
+    """Success rate with its 95% Wilson CI, return, length, grasp time and strain statistics."""
+    n = len(results)
+    successes = sum(r.success for r in results)
+    low, high = wilson_interval(successes, n)
+    returns = np.array([r.episode_return for r in results], dtype=float)
+    grasp_times = [r.grasp_time for r in results if r.grasp_time is not None]
+    strains = [r.peak_strain for r in results if r.peak_strain is not None]
+    return {
+        "episodes": n,
+        "successes": successes,
+        "success_rate": successes / n,
+        "success_ci_low": low,
+        "success_ci_high": high,
+        "mean_return": float(returns.mean()),
+        "std_return": float(returns.std()),
+        "mean_length": float(np.mean([r.length for r in results])),
+        "mean_grasp_time": float(np.mean(grasp_times)) if grasp_times else None,
+        "grasped_episodes": len(grasp_times),
+        "mean_peak_strain": float(np.mean(strains)) if strains else None,
+        "max_peak_strain": int(max(strains)) if strains else None,
+    }
+
+
+def per_object_table(results: Sequence[EpisodeResult]) -> str:
+    """A Markdown table: one row per object, then the total."""
+    groups: dict[str, list[EpisodeResult]] = {}
+    for r in results:
+        groups.setdefault(r.object_name, []).append(r)
+    lines = ["| object | episodes | success | 95% CI | mean grasp time (s) | mean peak strain |",
+             "|---|---:|---:|---|---:|---:|"]
+
+    def row(name: str, rows: Sequence[EpisodeResult]) -> str:
+        s = summarize(rows)
+        grasp = "-" if s["mean_grasp_time"] is None else f"{s['mean_grasp_time']:.3f}"
+        strain = "-" if s["mean_peak_strain"] is None else f"{s['mean_peak_strain']:.1f}"
+        return (f"| {name} | {s['episodes']} | {s['successes']}/{s['episodes']} ({s['success_rate']:.0%}) | "
+                f"{s['success_ci_low']:.2f}-{s['success_ci_high']:.2f} | {grasp} | {strain} |")
+
+    for name in sorted(groups):
+        lines.append(row(name, groups[name]))
+    lines.append(row("**all**", results))
+    return "\n".join(lines)
+
+
+def plot_training_curve(rows: Sequence[dict[str, float]], path: Path) -> Path:
+    """Held-out success rate (with its CI band) and mean return against env steps, to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        raise ValueError("no evaluation rows to plot")
+    steps = np.array([r["timesteps"] for r in rows])
+    figure, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(7, 5.5))
+    top.plot(steps, [r["success_rate"] for r in rows], marker="o", label="success rate")
+    top.fill_between(steps, [r["success_ci_low"] for r in rows], [r["success_ci_high"] for r in rows],
+                     alpha=0.25, label="95% Wilson CI")
+    top.set_ylim(-0.02, 1.02)
+    top.set_ylabel("held-out success")
+    top.legend(loc="lower right")
+    bottom.plot(steps, [r["mean_return"] for r in rows], marker="o", color="tab:orange")
+    bottom.set_ylabel("mean return")
+    bottom.set_xlabel("env steps")
+    figure.tight_layout()
+    path = Path(path)
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+    return path
+
+
+def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int, seed: int,
+               baseline=None, every: int = 3) -> Path:
+    """Render `episodes` sample episodes (headless TinyRenderer) into one GIF."""
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.rendering import write_animation
+
+    env = make_env(env_id, env_kwargs, render_mode="rgb_array")
+    frames = []
+    try:
+        base = env.unwrapped
+        fps = 1.0 / (float(base.cycle_seconds) * every)
+        for episode in range(episodes):
+            if baseline is not None and hasattr(baseline, "run_episode"):
+                baseline.run_episode(env, seed + episode, None, frames=frames, every=every)
+                continue
+            obs, info = env.reset(seed=seed + episode)
+            if baseline is not None:
+                baseline.reset(env)
+            frames.append(env.render())
+            done, step = False, 0
+            while not done:
+                action = baseline.act(obs, info) if baseline is not None else policy.predict(obs, deterministic=True)[0]
+                obs, _, terminated, truncated, info = env.step(action)
+                step += 1
+                done = terminated or truncated
+                if step % every == 0 or done:
+                    frames.append(env.render())
+    finally:
+        env.close()
+    write_animation(frames, str(path), fps=fps)
+    return Path(path)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("policy", nargs="?", type=Path, help="policy file: SB3 .zip or exported .npz")
+    source.add_argument("--baseline", choices=("supervisory", "loop"), help="evaluate a scripted baseline")
+    parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
+    parser.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
+    parser.add_argument("--objects", default="test",
+                        help="object set: test (held out, default), train, primitives, mixed, all")
+    parser.add_argument("--object-files", nargs="+", default=None, metavar="FILE",
+                        help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION]")
+    parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode")
+    parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on")
+    parser.add_argument("--out", type=Path, default=None, help="report directory (default: print only)")
+    parser.add_argument("--curve", type=Path, default=None,
+                        help="training run directory whose evaluations.csv to plot (default: the policy's)")
+    parser.add_argument("--gif-episodes", type=int, default=2, help="episodes rendered to the GIF (0: none)")
+
+
+def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_files: list[str] | None,
+                          randomize: bool) -> dict:
+    """The env kwargs for evaluation: the policy's env kwargs with the chosen objects (grasp envs
+    only; the reach env has none), domain randomisation off unless asked for."""
+    kwargs = dict(base_kwargs)
+    kwargs["randomize"] = bool(randomize)
+    if not env_id.startswith("BH8Grasp"):
+        if object_files:
+            raise ValueError(f"{env_id} has no objects; --object-files applies to BH8Grasp-v0")
+        return kwargs
+    kwargs.pop("object_files", None)
+    if object_files:
+        kwargs["object_files"] = list(object_files)
+        kwargs.pop("object_set", None)
+    elif objects:
+        kwargs["object_set"] = objects
+    return kwargs
+
+
+def run(args: argparse.Namespace) -> int:
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+
+    policy, baseline, metadata = None, None, {}
+    try:
+        if args.policy is not None:
+            policy = load_policy(args.policy)
+            metadata = policy.metadata
+        env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
+        if metadata.get("env_id") and env_id != metadata["env_id"]:
+            raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
+        env_kwargs = evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), args.objects, args.object_files,
+                                           args.randomize)
+        env = make_env(env_id, env_kwargs)
+        if args.baseline is not None:
+            from bh8_gym.agents.baselines import make_baseline
+
+            baseline = make_baseline(args.baseline, env)
+        try:
+            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline)
+        finally:
+            env.close()
+    except (PolicyFileError, FileNotFoundError, ValueError) as exc:
+        print(f"bh8 eval: {exc}", file=sys.stderr)
+        return 2
+    summary = summarize(results)
+    table = per_object_table(results)
+    label = f"baseline {args.baseline}" if baseline is not None else str(args.policy)
+    grasp = "n/a" if summary["mean_grasp_time"] is None else f"{summary['mean_grasp_time']:.3f} s"
+    print(f"{label} on {env_id} ({args.object_files or args.objects}), {summary['episodes']} episodes")
+    print(f"success rate {summary['success_rate']:.3f} (95% Wilson CI {summary['success_ci_low']:.3f}-"
+          f"{summary['success_ci_high']:.3f}); mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; "
+          f"peak strain mean {summary['mean_peak_strain']} max {summary['max_peak_strain']}")
+    print(table)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "table.md").write_text(table + "\n")
+        (args.out / "results.json").write_text(json.dumps(
+            {"summary": summary, "episodes": [asdict(r) for r in results], "env_id": env_id,
+             "env_kwargs": env_kwargs, "policy": label}, indent=2, default=str))
+        curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
+        if curve_dir is not None:
+            for folder in (curve_dir, curve_dir.parent):
+                if (folder / "evaluations.csv").exists():
+                    from bh8_gym.agents.train import read_evaluations
+
+                    plot_training_curve(read_evaluations(folder), args.out / "training_curve.png")
+                    break
+        if args.gif_episodes > 0:
+            record_gif(policy, env_id, env_kwargs, args.out / "episodes.gif", args.gif_episodes, args.seed,
+                       baseline=baseline)
+        print(f"report written to {args.out}")
+    return 0

@@ -1,0 +1,53 @@
+"""Plant speed: simulated seconds per wall second with 4 motors driven and one object in contact,
+against raw PyBullet stepping of the same scene (no drive-train logic), and physics steps per second.
+
+Run: /work/venv/bin/python benchmarks/bench_plant.py [--seconds 5]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import pybullet as p
+
+from bh8_gym.plant import HandPlant
+
+
+def scene() -> HandPlant:
+    plant = HandPlant(seed=0)
+    plant.set_wrist_pose((0.0, 0.0, 0.225), (1.0, 0.0, 0.0, 0.0), teleport=True)
+    plant.add_object("cylinder", (0.03, 0.13), position=(0.0, 0.0, 0.065), mass=0.2)
+    plant.set_drives([24_414.0] * 3 + [2_000.0], [1.0, 1.0, 1.0, 0.5])
+    for _ in range(500):  # close onto the box so the timed part is in contact
+        plant.step()
+    return plant
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per measurement")
+    args = parser.parse_args()
+    plant = scene()
+    steps = int(args.seconds / plant.dt)
+    start = time.perf_counter()
+    for k in range(steps):
+        if k % 250 == 0:  # alternate the drives so the fingers keep working
+            direction = 1.0 if (k // 250) % 2 == 0 else -0.2
+            plant.set_drives([24_414.0 * direction] * 3 + [2_000.0 * direction], [1.0, 1.0, 1.0, 0.5])
+        plant.step()
+    plant_wall = time.perf_counter() - start
+    contacts = len(plant.contacts(plant.objects[0], plant.hand_id))
+    client = plant.client
+    start = time.perf_counter()
+    for _ in range(steps):
+        p.stepSimulation(physicsClientId=client)
+    raw_wall = time.perf_counter() - start
+    plant.close()
+    print(f"physics step {plant.dt * 1000:.1f} ms; {steps} steps; hand-object contacts at the end: {contacts}")
+    print(f"plant:   {steps / plant_wall:8.0f} steps/s  {args.seconds / plant_wall:6.1f} simulated s per wall s")
+    print(f"raw:     {steps / raw_wall:8.0f} steps/s  {args.seconds / raw_wall:6.1f} simulated s per wall s")
+    print(f"plant overhead over raw stepping: {plant_wall / raw_wall:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

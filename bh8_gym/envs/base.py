@@ -1,0 +1,359 @@
+"""The common core of the BH8 environments: one step is one RealTime (LOOP) cycle through the firmware.
+
+A step encodes the action as a control block with `realtime_codec.LoopLayout`, writes it to the
+emulated firmware, runs the firmware until it waits for the next block and decodes the feedback
+block it sent, exactly as `bh8 deploy` does over a serial cable to a real BH8-262. Each step costs
+the simulated time SPEC.md §6 charges: (control + feedback bytes) × 10 / BAUD + 1 ms.
+
+Reset runs nothing but a `Firmware.restore` of a snapshot taken once at construction, after the
+supervisory setup script (`setup_commands` then `loop_command`: the very lines `bh8 deploy` sends
+to a real hand) has run, then places the episode's scene and asks for one feedback block with an
+"A" header (no control data), which gives the first observation, as deploy does.
+
+Observation (float32, `observation_fields` names every entry):
+
+- the decoded feedback fields the LOOP flags enable, coefficients applied, scaled to about
+  [-1, 1]: LFV × LFVC / 16 (counts per sample, full speed ≈ 14), (LFS − 128) / 128, LFAP / full
+  range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP / 128, LFT / 1000 (tenths °C; 4.4: /100);
+- the previous action, each datum mapped to [-1, 1] (`wrappers.bytes_to_unit`);
+- the fraction of the episode's time elapsed (the host's clock since its first block), then what
+  the subclass adds (the arm's phase for grasping, the targets for reaching).
+
+Only things a host knows on real hardware are in it. `privileged=True` appends simulator state
+(object pose, contacts) and puts it in info["privileged"]; `bh8 deploy` refuses such policies.
+"""
+from __future__ import annotations
+
+import tempfile
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+
+from bh8_gym.envs.randomization import PlantRandomizer, RandomizationRanges, sample_plant_parameters
+from bh8_gym.envs.wrappers import bytes_to_unit
+from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
+
+# §5.4.1 BAUD values × 100 (bits per second).
+SUPPORTED_BAUDS = (600, 1200, 2400, 4800, 9600, 19200, 38400)
+FULL_RANGE_COUNTS = {1: 17_500.0, 2: 17_500.0, 3: 17_500.0, 4: 3_150.0}  # SPEC.md §1, BH8-262
+VELOCITY_FULL_SCALE = 16.0  # counts per sample: no-load motor speed ≈ 14 counts per 256 µs sample
+STRAIN_CENTRE = 128.0
+DELTA_FULL_SCALE = 128.0
+TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
+BITS_PER_BYTE = 10  # 8N1 (§9.1)
+
+
+class FirmwareProtocolError(RuntimeError):
+    """The emulated firmware answered something other than the expected block or prompt."""
+
+
+class BH8LoopEnv(gym.Env):
+    """Base class; subclasses define the scene, the extra observation entries and the reward."""
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 30}
+    env_id = ""
+
+    def __init__(
+        self,
+        *,
+        motors: Sequence[int],
+        flags: MotorFlags,
+        lft: bool,
+        lcvc: int,
+        lfvc: int,
+        lfdpc: int,
+        lfdpd: bool,
+        baud: int,
+        firmware_profile: str,
+        extra_motor_settings: str,
+        episode_seconds: float,
+        randomize: bool,
+        randomization: RandomizationRanges | None,
+        plant_parameters,
+        privileged: bool,
+        render_mode: str | None,
+        render_size: tuple[int, int],
+    ):
+        if baud not in SUPPORTED_BAUDS:
+            raise ValueError(f"baud must be one of {SUPPORTED_BAUDS} (manual §5.4.1 BAUD), got {baud!r}")
+        if render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
+        for name, value in (("lcvc", lcvc), ("lfvc", lfvc), ("lfdpc", lfdpc)):
+            if not (isinstance(value, (int, np.integer)) and 1 <= value <= 255):
+                raise ValueError(f"{name} must be an integer 1..255 (Table 4), got {value!r}")
+        if not episode_seconds > 0:
+            raise ValueError(f"episode_seconds must be > 0, got {episode_seconds!r}")
+        self.layout = LoopLayout(motors, flags, lft=lft, firmware=firmware_profile)
+        if not self.layout.control_fields:
+            raise ValueError("the LOOP configuration sends no control data (enable LCV or LCPG)")
+        if not self.layout.feedback_fields:
+            raise ValueError("the LOOP configuration returns no feedback (enable LFV, LFS, LFAP, LFDP or LFT)")
+        self.motors = self.layout.motors
+        self.baud = int(baud)
+        self.firmware_profile = firmware_profile
+        self.privileged = bool(privileged)
+        self.render_mode = render_mode
+        self.render_size = tuple(render_size)
+        self.randomize = bool(randomize)
+        self.randomization = randomization or RandomizationRanges()
+        self.episode_seconds = float(episode_seconds)
+        self.coefficients = {"LCVC": int(lcvc), "LFVC": int(lfvc), "LFDPC": int(lfdpc)}
+
+        prefix = "".join(str(m) for m in self.motors)
+        f = flags
+        settings = (
+            f"LCV {int(f.LCV)} LCVC {lcvc} LCPG {int(f.LCPG)} LFV {int(f.LFV)} LFVC {lfvc} "
+            f"LFS {int(f.LFS)} LFAP {int(f.LFAP)} LFDP {int(f.LFDP)} LFDPC {lfdpc}"
+        )
+        if extra_motor_settings:
+            settings += " " + extra_motor_settings
+        #: The supervisory script `bh8 deploy` sends to a real hand before `loop_command`.
+        #: HI first (it uses the stored gains and velocities), then the LOOP configuration, then
+        #: the baud rate last (the host switches its own port rate right after it).
+        self.setup_commands: tuple[str, ...] = (
+            "HI",
+            f"{prefix}FSET {settings}",
+            f"PSET LFT {int(lft)} LFDPD {int(lfdpd)}",
+            f"PSET BAUD {self.baud // 100}",
+        )
+        self.loop_command = f"{prefix}LOOP"
+
+        control_bytes = self.layout.control_block_size(HEADER_CONTROL_FEEDBACK)
+        #: Simulated seconds per step (SPEC.md §6): both blocks' bytes at BAUD plus processing.
+        from bh8_gym.firmware import REALTIME_PROCESSING_S
+
+        self.cycle_seconds = (control_bytes + self.layout.feedback_size) * BITS_PER_BYTE / self.baud + REALTIME_PROCESSING_S
+
+        # Action space: the control data of one block, in control_fields order.
+        low = [-128 if name == "LCV" else 0 for _, name in self.layout.control_fields]
+        high = [127 if name == "LCV" else 255 for _, name in self.layout.control_fields]
+        if any(name == "LCT" for _, name in self.layout.control_fields):
+            raise ValueError("LCT (firmware 4.4 torque control) is not supported by the environments")
+        self.action_space = gym.spaces.Box(np.array(low, np.int16), np.array(high, np.int16), dtype=np.int16)
+        self._action_low = self.action_space.low.astype(np.int64)
+        self._action_high = self.action_space.high.astype(np.int64)
+        self._action_low_f = self._action_low.astype(np.float64)
+        self._action_shape = self.action_space.shape
+        self._low_list = self._action_low.tolist()
+        self._high_list = self._action_high.tolist()
+        self._action_high_f = self._action_high.astype(np.float64)
+
+        # Observation layout, precomputed: obs_feedback = (values - offset) * scale.
+        offsets, scales, names = [], [], []
+        for motor, name in self.layout.feedback_fields:
+            names.append(f"{name}{motor}" if motor else name)
+            if name == "LFV":
+                offsets.append(0.0), scales.append(lfvc / VELOCITY_FULL_SCALE)
+            elif name == "LFS":
+                offsets.append(STRAIN_CENTRE), scales.append(1.0 / STRAIN_CENTRE)
+            elif name == "LFAP":
+                offsets.append(0.0), scales.append(1.0 / FULL_RANGE_COUNTS[motor])
+            elif name == "LFDP":
+                offsets.append(0.0), scales.append(1.0 / DELTA_FULL_SCALE)
+            else:  # LFT
+                offsets.append(0.0), scales.append(1.0 / TEMPERATURE_SCALE[firmware_profile])
+        self._fb_offset = np.array(offsets)
+        self._fb_scale = np.array(scales)
+        names += [f"prev_{name}{motor}" for motor, name in self.layout.control_fields]
+        names.append("episode_fraction")
+        names += self._extra_observation_names()
+        self._n_host = len(names)
+        if self.privileged:
+            names += self._privileged_observation_names()
+        #: Name of every observation entry, in order.
+        self.observation_fields: tuple[str, ...] = tuple(names)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(len(names),), dtype=np.float32)
+        self._n_fb = len(self.layout.feedback_fields)
+        self._n_act = len(self.layout.control_fields)
+        self._obs = np.zeros(len(names), dtype=np.float32)
+
+        # The world, the firmware, the setup script, and the snapshot every reset restores.
+        from bh8_gym.firmware import Firmware
+        from bh8_gym.plant import HandPlant, PlantParameters
+
+        self._base_parameters = self._plant_parameters(plant_parameters if plant_parameters is not None else PlantParameters())
+        self._store = tempfile.TemporaryDirectory(prefix="bh8-env-store-")
+        self.plant = HandPlant(params=self._base_parameters, seed=0, gui=render_mode == "human")
+        self.firmware = Firmware(plant=self.plant, store_dir=self._store.name, profile=firmware_profile, seed=0)
+        self.scene = self._build_scene()
+        for line in self.setup_commands:
+            self._supervisory(line)
+        echo = self.firmware.transact(self.loop_command.encode() + b"\r")
+        if echo != self.loop_command.encode() + b"*":
+            raise FirmwareProtocolError(f"{self.loop_command!r} answered {echo!r}")
+        self.firmware.cycle_hook = self.scene.cycle_hook
+        self._snapshot = self.firmware.snapshot()
+        self._randomizer = PlantRandomizer(self.plant)
+
+        self._prev_action = np.zeros(self._n_act, dtype=np.int64)
+        self._feedback_block_size = self.layout.feedback_size
+        self._a_block = self.layout.encode_control((), HEADER_FEEDBACK)
+        self._episode_start = 0.0
+        self._cycles = 0
+        self._last_values: tuple[int, ...] = ()
+
+    # ------------------------------------------------------------------ subclass interface
+
+    def _build_scene(self):
+        raise NotImplementedError
+
+    def _plant_parameters(self, params):
+        """The PlantParameters this env builds its plant with (subclasses adapt the world)."""
+        return params
+
+    def _extra_observation_names(self) -> list[str]:
+        return []
+
+    def _privileged_observation_names(self) -> list[str]:
+        return []
+
+    def _fill_extra(self, out: np.ndarray, elapsed: float) -> None:
+        """Write the subclass's host-side observation entries into `out`."""
+
+    def _fill_privileged(self, out: np.ndarray) -> None:
+        """Write privileged entries into `out` (only with privileged=True)."""
+
+    def _privileged_info(self) -> dict:
+        return {}
+
+    def _reward(self, values: tuple[int, ...], elapsed: float, done: bool) -> tuple[float, dict, bool, bool]:
+        """(reward, reward terms, is_success, terminated) after a step."""
+        raise NotImplementedError
+
+    def _begin_episode(self, rng: np.random.Generator) -> None:
+        """Draw and place the episode's scene (after the snapshot was restored)."""
+        episode = self.scene.sample_episode(rng)
+        self.scene.begin_episode(episode)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _supervisory(self, line: str) -> bytes:
+        reply = self.firmware.transact(line.encode("ascii") + b"\r")
+        expected_start = line.encode("ascii") + b"\n\r"
+        if not reply.startswith(expected_start) or not reply.endswith(b"=> ") or b"ERR" in reply:
+            raise FirmwareProtocolError(f"setup command {line!r} answered {reply!r}")
+        return reply
+
+    def _cycle(self, block: bytes) -> tuple[int, ...]:
+        firmware = self.firmware
+        firmware.write(block)
+        firmware.run_until_idle()
+        feedback = firmware.read()
+        if len(feedback) != self._feedback_block_size or feedback[0] != 0x2A:
+            raise FirmwareProtocolError(f"control block {block!r} answered {feedback!r}")
+        self._feedback_block = feedback
+        self._cycles += 1
+        return self.layout.decode_feedback(feedback)
+
+    def _validate_action(self, action) -> list[int]:
+        array = np.asarray(action)
+        if array.shape != self._action_shape:
+            raise ValueError(f"action must have shape {self._action_shape}, got {array.shape}: {action!r}")
+        if array.dtype.kind not in "iu":
+            if array.dtype.kind not in "fb" or not np.all(np.isfinite(array)):
+                raise ValueError(f"action must be integers, got {action!r}")
+            if not np.all(array == np.round(array)):
+                raise ValueError(f"action must be whole numbers (LOOP bytes), got {action!r}")
+            array = array.astype(np.int64)
+        values = array.tolist()
+        # Plain-Python comparison: a handful of values, cheaper than numpy's per-call overhead.
+        for value, low, high in zip(values, self._low_list, self._high_list):
+            if value < low or value > high:
+                raise ValueError(
+                    f"action {action!r} out of range: each datum must lie in {self._low_list}..{self._high_list} "
+                    f"({[f'{n}{m}' for m, n in self.layout.control_fields]})"
+                )
+        return values
+
+    def elapsed(self) -> float:
+        """Seconds of the host's clock since its first block of this episode (the reset's "A" block)."""
+        return self.firmware.time - self._episode_start
+
+    # ------------------------------------------------------------------ public observation builder
+
+    def observation_from_feedback(
+        self, values: Sequence[int], previous_action: Sequence[int], elapsed: float
+    ) -> np.ndarray:
+        """The observation a host builds from a decoded feedback block (host-side entries only).
+
+        `values`: `layout.decode_feedback(block)`; `previous_action`: the control values last sent
+        (zeros before the first); `elapsed`: seconds since the episode's first block. This is what
+        `bh8 deploy` calls with the real hand's blocks; privileged entries are never included.
+        """
+        out = np.zeros(self._n_host, dtype=np.float32)
+        self._fill_host(out, values, np.asarray(previous_action, dtype=np.float64), elapsed)
+        return out
+
+    def _fill_host(self, out: np.ndarray, values, previous_action: np.ndarray, elapsed: float) -> None:
+        n_fb, n_act = self._n_fb, self._n_act
+        out[:n_fb] = (np.asarray(values, dtype=np.float64) - self._fb_offset) * self._fb_scale
+        out[n_fb:n_fb + n_act] = bytes_to_unit(previous_action, self._action_low_f, self._action_high_f)
+        out[n_fb + n_act] = min(elapsed / self.episode_seconds, 1.0)
+        self._fill_extra(out[n_fb + n_act + 1:self._n_host], elapsed)
+
+    def _observation(self, values) -> np.ndarray:
+        obs = self._obs
+        self._fill_host(obs, values, self._prev_action, self.elapsed())
+        if self.privileged:
+            self._fill_privileged(obs[self._n_host:])
+        return obs.copy()
+
+    # ------------------------------------------------------------------ gymnasium API
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        self.scene.remove_object()
+        self.firmware.restore(self._snapshot)
+        if self.randomize:
+            self._randomizer.apply(sample_plant_parameters(self._base_parameters, self.np_random, self.randomization))
+        self._begin_episode(self.np_random)
+        self._prev_action[:] = 0
+        self._cycles = 0
+        self._episode_start = self.firmware.time
+        values = self._cycle(self._a_block)
+        self._last_values = values
+        info = {"control_block": self._a_block, "feedback_block": self._feedback_block}
+        if self.privileged:
+            info["privileged"] = self._privileged_info()
+        return self._observation(values), info
+
+    def step(self, action):
+        control = self._validate_action(action)
+        block = self.layout.encode_control(control, HEADER_CONTROL_FEEDBACK)
+        values = self._cycle(block)
+        self._prev_action[:] = control
+        self._last_values = values
+        elapsed = self.elapsed()
+        truncated = elapsed >= self.episode_seconds - 1e-9
+        reward, terms, success, terminated = self._reward(values, elapsed, truncated)
+        info = {
+            "control_block": block,
+            "feedback_block": self._feedback_block,
+            "is_success": success,
+            "reward_terms": terms,
+            "time": elapsed,
+        }
+        if self.privileged:
+            info["privileged"] = self._privileged_info()
+        if self.render_mode == "human":
+            self.render()
+        return self._observation(values), reward, terminated, truncated and not terminated, info
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            from bh8_gym.rendering import render_frame
+
+            return render_frame(self.plant, *self.render_size, camera=self._camera())
+        return None
+
+    def _camera(self):
+        return None
+
+    def close(self):
+        if getattr(self, "firmware", None) is not None:
+            self.plant.close()
+            self.firmware = None
+        if getattr(self, "_store", None) is not None:
+            self._store.cleanup()
+            self._store = None

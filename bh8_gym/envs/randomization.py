@@ -1,0 +1,112 @@
+"""Domain randomisation of the simulated hand (PlantParameters), drawn each reset from the env's np_random.
+
+On by default (`randomize=True`); evaluation turns it off. Every range says why it is as wide as
+it is: the constants the manual gives vary from unit to unit and with temperature; the ones we
+estimated (SPEC.md §8 open points) get wider ranges, because a policy must not depend on our guess.
+
+Object mass and friction are drawn with the object (objects.py); placement errors in scenes.py.
+Not randomised: the RealTime processing time per cycle (firmware.REALTIME_PROCESSING_S is a
+module constant shared by every firmware in the process; see the envs report).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+# PlantParameters fields multiplied by a uniform factor (low, high), in draw order.
+SCALED_FIELDS = (
+    "motor_peak_torque",
+    "motor_no_load_speed",
+    "finger_drive_efficiency",
+    "breakaway_base_torque",
+    "breakaway_preload_slope",
+    "rotor_impact_gain",
+    "strain_gain",
+    "link_mass_scale",
+)
+# PlantParameters fields drawn uniformly in (low, high), in draw order.
+ABSOLUTE_FIELDS = ("finger_friction", "palm_friction", "table_friction")
+
+
+@dataclass(frozen=True)
+class RandomizationRanges:
+    """Ranges; a factor range (1.0, 1.0) or an equal (low, high) switches that knob off."""
+
+    # Table 7's peak torque is nominal; motors differ by about ±10 % and lose torque when hot.
+    motor_peak_torque: tuple[float, float] = (0.85, 1.15)
+    # No-load speed varies with supply voltage and brush wear.
+    motor_no_load_speed: tuple[float, float] = (0.9, 1.1)
+    # Our estimate (worm + cable); worm efficiency depends on lubrication and load.
+    finger_drive_efficiency: tuple[float, float] = (0.8, 1.2)
+    # TorqueSwitch breakaway vs preload is an image in the manual (SPEC.md §8): wide ranges.
+    breakaway_base_torque: tuple[float, float] = (0.7, 1.3)
+    breakaway_preload_slope: tuple[float, float] = (0.7, 1.3)
+    rotor_impact_gain: tuple[float, float] = (0.7, 1.3)
+    # Strain-gauge slope is an open point (SPEC.md §8); no-load offsets 100-140 per finger (SPEC §1).
+    strain_gain: tuple[float, float] = (0.85, 1.15)
+    strain_offsets: tuple[int, int] = (100, 140)
+    # Link masses from CAD-like estimates (hand_urdf): ±10 %.
+    link_mass_scale: tuple[float, float] = (0.9, 1.1)
+    # Pads get dusty or worn; tables differ.
+    finger_friction: tuple[float, float] = (0.5, 1.1)
+    palm_friction: tuple[float, float] = (0.4, 0.8)
+    table_friction: tuple[float, float] = (0.3, 0.8)
+
+    def __post_init__(self):
+        for item in fields(self):
+            low, high = getattr(self, item.name)
+            if not (np.isfinite(low) and np.isfinite(high) and 0 <= low <= high):
+                raise ValueError(f"randomisation range {item.name} must be 0 <= low <= high, got {(low, high)!r}")
+
+
+def sample_plant_parameters(base, rng: np.random.Generator, ranges: RandomizationRanges = RandomizationRanges()):
+    """A copy of `base` (PlantParameters) with the randomised fields drawn from `rng` (fixed order)."""
+    values = {}
+    for name in SCALED_FIELDS:
+        low, high = getattr(ranges, name)
+        values[name] = getattr(base, name) * float(rng.uniform(low, high))
+    for name in ABSOLUTE_FIELDS:
+        values[name] = float(rng.uniform(*getattr(ranges, name)))
+    low, high = ranges.strain_offsets
+    values["strain_offsets"] = tuple(int(v) for v in rng.integers(int(low), int(high) + 1, size=3))
+    return replace(base, **values)
+
+
+class PlantRandomizer:
+    """Applies sampled PlantParameters to a live HandPlant between episodes (after a state restore).
+
+    HandPlant reads most parameters live from `plant.params`; link frictions and masses live in
+    PyBullet, the strain offsets in `plant.strain_offsets`, and the drive capacities are derived
+    once at construction, so those are re-derived here with the plant's own formulas (plant.py
+    `_build_world`). A `HandPlant.set_parameters` would make this unnecessary (see the report).
+    """
+
+    def __init__(self, plant):
+        import pybullet
+
+        from bh8_gym import plant as plant_module
+
+        self._p = pybullet
+        self._module = plant_module
+        self.plant = plant
+        client, hand = plant.client, plant.hand_id
+        self._links = [-1] + list(range(pybullet.getNumJoints(hand, physicsClientId=client)))
+        scale = plant.params.link_mass_scale
+        self._unit_masses = [pybullet.getDynamicsInfo(hand, link, physicsClientId=client)[0] / scale for link in self._links]
+
+    def apply(self, params) -> None:
+        p, plant, m = self._p, self.plant, self._module
+        params.validate()
+        client, hand = plant.client, plant.hand_id
+        plant.params = params
+        plant.strain_offsets = tuple(params.strain_offsets)
+        plant._finger_capacity = params.motor_peak_torque * m.INNER_GEAR_RATIO * params.finger_drive_efficiency
+        plant._outer_capacity = params.motor_peak_torque * m.OUTER_ABS_GEAR_RATIO * params.finger_drive_efficiency
+        plant._spread_capacity = params.motor_peak_torque * m.SPREAD_GEAR_RATIO * params.spread_drive_efficiency
+        for link, unit_mass in zip(self._links, self._unit_masses):
+            friction = params.palm_friction if link == -1 else params.finger_friction
+            p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * params.link_mass_scale,
+                             physicsClientId=client)
+        if plant.table_id is not None:
+            p.changeDynamics(plant.table_id, -1, lateralFriction=params.table_friction, physicsClientId=client)

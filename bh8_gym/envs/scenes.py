@@ -1,0 +1,277 @@
+"""What is in an environment's world, where it goes each episode, and what the arm does each cycle.
+
+Shared by the environments and by `bh8 serve --env ID --seed N`, so the served hand sits in the
+exact scene the environment builds for that seed: `build_scene(env_id, plant)` makes the static
+world, `scene.sample_episode(rng)` draws an episode (the SAME draws in the same order as the
+environment's reset), `scene.begin_episode(episode)` places it, and `scene.cycle_hook` (set as
+`Firmware.cycle_hook`) moves the arm once per RealTime cycle. The arm's clock starts at the first
+RealTime cycle after `begin_episode`, as a host's clock would start at its first control block.
+
+Geometry: the hand hangs palm-down at the plant's initial wrist pose (PlantParameters.wrist_position);
+the plant's TABLE moves under it per episode (placing a static box is a reset, moving the hand would need physics steps).
+Position and yaw errors of the "arm's" placement are applied to the object, which is equivalent
+(only the hand-object relation matters on an unbounded table) and keeps the hand's pose fixed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from math import cos, pi, radians, sin
+
+import numpy as np
+
+from bh8_gym.kinematics import DW
+from bh8_gym.envs.objects import ObjectLoader, ObjectSet, ObjectSpec
+
+# Quaternion (x, y, z, w) turning the wrist frame's z axis (out through the palm, §9.5) to world -z.
+WRIST_PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ArmSchedule:
+    """The arm's motion in an episode: grasp (still), lift (minimum-jerk rise), hold (optional shake).
+
+    Durations follow the lead's design: 1.5-2.5 s episodes, a 10 cm lift over about 0.7 s (a
+    gentle but realistic pick speed for an industrial arm, peak about 0.27 m/s).
+    """
+
+    grasp_seconds: float = 0.8
+    lift_seconds: float = 0.7
+    hold_seconds: float = 0.5
+    lift_height: float = 0.10  # metres
+    shake_amplitude: float = 0.0  # metres, horizontal (x) sinusoid during hold; 0 = no shake
+    shake_frequency: float = 2.0  # Hz
+
+    PHASES = ("grasp", "lift", "hold")
+
+    def __post_init__(self):
+        for name in ("grasp_seconds", "lift_seconds", "hold_seconds"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ArmSchedule.{name} must be > 0, got {getattr(self, name)!r}")
+        if not (self.lift_height >= 0 and self.shake_amplitude >= 0 and self.shake_frequency > 0):
+            raise ValueError(f"invalid ArmSchedule {self!r}")
+
+    @property
+    def total_seconds(self) -> float:
+        return self.grasp_seconds + self.lift_seconds + self.hold_seconds
+
+    @property
+    def durations(self) -> tuple[float, float, float]:
+        return (self.grasp_seconds, self.lift_seconds, self.hold_seconds)
+
+    def phase(self, elapsed: float) -> tuple[int, float]:
+        """(phase index 0..2, seconds in that phase); past the end: (2, time in hold)."""
+        if elapsed < self.grasp_seconds:
+            return 0, max(elapsed, 0.0)
+        elapsed -= self.grasp_seconds
+        if elapsed < self.lift_seconds:
+            return 1, elapsed
+        return 2, elapsed - self.lift_seconds
+
+    def wrist_offset(self, elapsed: float) -> tuple[float, float]:
+        """(horizontal x, vertical z) offset of the wrist from its start, metres."""
+        index, tau = self.phase(elapsed)
+        if index == 0:
+            return 0.0, 0.0
+        if index == 1:
+            s = tau / self.lift_seconds
+            return 0.0, self.lift_height * s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+        return self.shake_amplitude * sin(2.0 * pi * self.shake_frequency * tau), self.lift_height
+
+
+@dataclass(frozen=True)
+class PlacementRanges:
+    """Where the arm puts the hand relative to the object (uniform draws)."""
+
+    # A vision-guided arm's placement error: ±2 cm, ±15° (lead's design; typical of a
+    # calibrated RGB-D pipeline on a tabletop).
+    position_error: float = 0.02  # metres, each of x and y
+    yaw_error: float = radians(15.0)
+    clearance: tuple[float, float] = (0.01, 0.03)  # palm face above the object's top, metres
+    # Closing fingertips sweep down to 95 mm below the palm face (FK along the 3:1 coupling: deepest
+    # at an inner angle of 50°, 60 mm from the palm axis); the rounded fingertip adds about 10 mm
+    # and 10 mm of margin keeps it off the table, so fingers meet the object's side instead of
+    # stalling on the table (measured: at 0.10 m the tips stall on the table near 4,100 counts).
+    min_palm_above_table: float = 0.115
+
+
+@dataclass(frozen=True)
+class GraspEpisode:
+    """Everything drawn for one grasp episode (the environment and `bh8 serve --env` share it)."""
+
+    spec: ObjectSpec
+    object_xy: tuple[float, float]  # object centre in the hand's horizontal frame, metres
+    object_yaw: float
+    clearance: float
+
+
+class GraspScene:
+    """Table, object and a palm-down hand on a lifting arm."""
+
+    def __init__(
+        self,
+        plant,
+        object_set: ObjectSet,
+        placement: PlacementRanges = PlacementRanges(),
+        arm: ArmSchedule = ArmSchedule(),
+        visuals: bool = True,
+    ):
+        import pybullet
+
+        self._p = pybullet
+        self.plant = plant
+        self.client = plant.client
+        self.object_set = object_set
+        self.placement = placement
+        self.arm = arm
+        self.loader = ObjectLoader(self.client, visuals=visuals)
+        if plant.table_id is None:
+            raise ValueError("the grasp scene needs the plant's table (PlantParameters.table=True)")
+        self.table = plant.table_id
+        self._table_half_height = -pybullet.getBasePositionAndOrientation(self.table, physicsClientId=self.client)[0][2]
+        self.wrist_start = np.array(plant.params.wrist_position, dtype=float)
+        #: World height of the palm face (the wrist hangs palm-down, the palm face Dw below it).
+        self.palm_height = float(self.wrist_start[2] - DW)
+        self._wrist_target = self.wrist_start.copy()
+        self.table_top = 0.0
+        self.object_body: int | None = None
+        self.object_rest_z = 0.0
+        self.episode: GraspEpisode | None = None
+        self.start_time: float | None = None
+        plant.set_wrist_pose(self.wrist_start, WRIST_PALM_DOWN, teleport=True)
+
+    def _table_position(self, top: float) -> tuple[float, float, float]:
+        return (0.0, 0.0, top - self._table_half_height)
+
+    def sample_episode(self, rng: np.random.Generator) -> GraspEpisode:
+        spec = self.object_set.sample(rng)
+        pl = self.placement
+        error = rng.uniform(-pl.position_error, pl.position_error, 2)
+        yaw = float(rng.uniform(-pl.yaw_error, pl.yaw_error))
+        clearance = float(rng.uniform(*pl.clearance))
+        # The arm's error puts the hand at +error/+yaw from the object; seen from the hand, the
+        # object sits at -error rotated by -yaw.
+        return GraspEpisode(spec, (float(-error[0]), float(-error[1])), -yaw, clearance)
+
+    def remove_object(self) -> None:
+        """Remove the episode's object (before a PyBullet restoreState, which needs the saved bodies)."""
+        if self.object_body is not None:
+            self.loader.remove(self.object_body)
+            self.object_body = None
+
+    def begin_episode(self, episode: GraspEpisode) -> None:
+        """Place the table and the object for `episode`; the arm starts at the next cycle."""
+        p, client = self._p, self.client
+        self.remove_object()
+        half_yaw = episode.object_yaw / 2.0
+        orientation = (0.0, 0.0, sin(half_yaw), cos(half_yaw))
+        body = self.loader.create(episode.spec, (episode.object_xy[0], episode.object_xy[1], -5.0), orientation)
+        low, high = p.getAABB(body, -1, physicsClientId=client)
+        height = high[2] - low[2]
+        bottom_offset = -5.0 - low[2]
+        palm_above_table = max(height + episode.clearance, self.placement.min_palm_above_table)
+        self.table_top = self.palm_height - palm_above_table
+        p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
+                                          physicsClientId=client)
+        self.object_rest_z = self.table_top + bottom_offset + 1e-4
+        p.resetBasePositionAndOrientation(body, (episode.object_xy[0], episode.object_xy[1], self.object_rest_z),
+                                          orientation, physicsClientId=client)
+        self.object_body = body
+        self.episode = episode
+        self.start_time = None
+        self._wrist_target[:] = self.wrist_start
+        self.plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
+
+    def cycle_hook(self, firmware) -> None:
+        """Once per RealTime cycle: start the arm's clock, move the wrist along the schedule."""
+        if self.start_time is None:
+            self.start_time = firmware.time
+        dx, dz = self.arm.wrist_offset(firmware.time - self.start_time)
+        if dx or dz:
+            self._wrist_target[0] = self.wrist_start[0] + dx
+            self._wrist_target[2] = self.wrist_start[2] + dz
+            self.plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
+
+
+@dataclass(frozen=True)
+class ReachEpisode:
+    targets: tuple[int, ...]  # encoder counts per LOOP motor
+
+
+@dataclass(frozen=True)
+class ReachRanges:
+    """Targets of BH8FingerReach-v0, encoder counts (BH8-262 scale, SPEC.md §1)."""
+
+    # Fingers up to 10,000 counts (inner link 80°): fingers closed further at zero spread meet each
+    # other, and a reach task should not depend on finger-finger collisions.
+    finger: tuple[int, int] = (0, 10_000)
+    spread: tuple[int, int] = (0, 3_150)  # the whole spread range (0-180°)
+
+
+class ReachScene:
+    """The hand alone, palm up, in free space; targets are the host's business (no arm)."""
+
+    cycle_hook = None
+
+    def __init__(self, plant, motors: tuple[int, ...], ranges: ReachRanges = ReachRanges()):
+        self.plant = plant
+        self.motors = motors
+        self.ranges = ranges
+        low = [ranges.spread[0] if m == 4 else ranges.finger[0] for m in motors]
+        high = [ranges.spread[1] if m == 4 else ranges.finger[1] for m in motors]
+        self._low = np.array(low)
+        self._high = np.array(high)
+
+    def sample_episode(self, rng: np.random.Generator) -> ReachEpisode:
+        return ReachEpisode(tuple(int(v) for v in rng.integers(self._low, self._high + 1)))
+
+    def begin_episode(self, episode: ReachEpisode) -> None:
+        self.episode = episode
+
+    def remove_object(self) -> None:
+        """Nothing to remove: the reach scene has no per-episode bodies."""
+
+
+@dataclass
+class SceneOptions:
+    """Keyword options `build_scene` accepts (the environments pass their own)."""
+
+    object_set: str | ObjectSet = "primitives"
+    placement: PlacementRanges = field(default_factory=PlacementRanges)
+    arm: ArmSchedule = field(default_factory=ArmSchedule)
+    motors: tuple[int, ...] = (1, 2, 3, 4)
+    reach: ReachRanges = field(default_factory=ReachRanges)
+    visuals: bool = True
+
+
+def build_scene(env_id: str, plant, options: SceneOptions | None = None):
+    """The static scene of environment `env_id` in `plant` (for `bh8 serve --env`)."""
+    options = options or SceneOptions()
+    if env_id.startswith("BH8Grasp"):
+        object_set = options.object_set
+        if isinstance(object_set, str):
+            object_set = ObjectSet.named(object_set)
+        return GraspScene(plant, object_set, options.placement, options.arm, options.visuals)
+    if env_id.startswith("BH8FingerReach"):
+        return ReachScene(plant, tuple(options.motors), options.reach)
+    raise ValueError(f"no scene for environment {env_id!r}; expected BH8Grasp-v0 or BH8FingerReach-v0")
+
+
+def scene_for_seed(env_id: str, plant, seed: int, randomize: bool = True, options: SceneOptions | None = None):
+    """The scene `env_id`'s `reset(seed=seed)` builds, in `plant` (for `bh8 serve --env ID --seed N`).
+
+    Draws exactly what the environment's first reset after `seed` draws, in the same order
+    (plant randomisation with the default ranges, then the episode) from gymnasium's seeded
+    generator, applies them and places the scene. Set `firmware.cycle_hook = scene.cycle_hook`;
+    the arm's clock starts at the first RealTime cycle. The plant should be freshly built with the
+    environment's base PlantParameters (default: PlantParameters()).
+    """
+    from gymnasium.utils import seeding
+
+    from bh8_gym.envs.randomization import PlantRandomizer, sample_plant_parameters
+
+    rng, _ = seeding.np_random(seed)
+    scene = build_scene(env_id, plant, options)
+    if randomize:
+        PlantRandomizer(plant).apply(sample_plant_parameters(plant.params, rng))
+    scene.begin_episode(scene.sample_episode(rng))
+    return scene

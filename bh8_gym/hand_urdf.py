@@ -1,0 +1,261 @@
+"""Generate the BH8-262 URDF from the D-H constants in `bh8_gym.kinematics` (one source of truth).
+
+Every link frame is the D-H frame of manual §9.5 Table 9 (Craig's modified convention, Equation 1),
+so PyBullet's link frames equal `kinematics.link_frames`:
+
+* `palm` (the base) is the wrist frame {W}: z out through the palm, palm face at z = Dw.
+* `fK_knuckle` is frame {1} of finger K: F1/F2 turn about it (the spread joint, axis r·z so that the
+  joint angle is the manual's Θk1 >= 0); F3's knuckle is fixed (r = 0: F3 does not spread).
+* `fK_inner` is frame {2} (joint angle Θk2), `fK_outer` frame {3} (Θk3, relative to the inner link),
+  `fK_tip` the fixed fingertip frame {T}.
+
+Joint ranges are §9.6 / App. A (inner 0-140°, outer 0-48°, spread 0-180°). Collision shapes are
+boxes and cylinders of the hand's proportions (finger width `FINGER_WIDTH`, so at full spread F1,
+F3 and F2 lie 25 mm apart centre to centre and close side by side with a gap of
+`AW - FINGER_WIDTH`); the masses add up to App. A's 1.18 kg.
+
+`python -m bh8_gym.hand_urdf [--output PATH]` writes the URDF (default: assets/bh8_262.urdf).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+import tempfile
+from math import atan2, pi, sqrt
+from pathlib import Path
+
+import numpy as np
+
+from bh8_gym import kinematics as kin
+
+# App. A: 1.18 kg for the whole hand. The split between palm (motors, electronics) and finger
+# links is our estimate: the palm houses all four motors and the electronics.
+TOTAL_MASS = 1.18
+KNUCKLE_MASS = 0.035
+INNER_LINK_MASS = 0.055
+OUTER_LINK_MASS = 0.035
+TIP_FRAME_MASS = 0.001  # the fixed tip frame is a marker; PyBullet wants a non-zero mass
+PALM_MASS = TOTAL_MASS - 3 * (KNUCKLE_MASS + INNER_LINK_MASS + OUTER_LINK_MASS + TIP_FRAME_MASS)
+
+# Shape dimensions (metres). Finger width is along the inner/outer joint axes; 20 mm leaves 5 mm
+# between neighbouring fingers at full spread (their centres are Aw = 25 mm apart, Table 9).
+FINGER_WIDTH = 0.020
+FINGER_THICKNESS = 0.020  # inner link, across the link in its bending plane
+OUTER_BACK = 0.008  # outer link's back surface below the link line; its pad is at +D3
+PALM_RADIUS = 0.043  # keeps the palm clear of the knuckle joints, which sit 50-76 mm out
+KNUCKLE_START = 0.012  # knuckle housing spans x1 from here to just past the inner joint axis
+KNUCKLE_END = kin.A1 + 0.008
+KNUCKLE_BELOW = 0.010
+KNUCKLE_ABOVE = 0.012
+INNER_START = 0.008  # inner link box starts this far past its joint axis (the knuckle covers it)
+OUTER_START = 0.006
+
+PALM_RGBA = (0.22, 0.23, 0.25, 1.0)
+KNUCKLE_RGBA = (0.12, 0.12, 0.13, 1.0)
+LINK_RGBA = (0.78, 0.79, 0.82, 1.0)
+TIP_RGBA = (0.35, 0.36, 0.40, 1.0)
+
+FINGER_JOINT_EFFORT = 5.0  # N·m; informative only (the plant sets motor forces itself)
+FINGER_JOINT_VELOCITY = 10.0  # rad/s; informative only
+JOINT_DAMPING = 0.002  # N·m·s/rad: small viscous loss in the finger bearings (our estimate)
+
+JOINT_NAMES = (
+    "f1_spread_joint",
+    "f1_inner_joint",
+    "f1_outer_joint",
+    "f2_spread_joint",
+    "f2_inner_joint",
+    "f2_outer_joint",
+    "f3_inner_joint",
+    "f3_outer_joint",
+)
+TIP_LINK_NAMES = ("f1_tip", "f2_tip", "f3_tip")
+
+
+def _fmt(value: float) -> str:
+    text = f"{value:.9g}"
+    return "0" if text == "-0" else text
+
+
+def _vec(values) -> str:
+    return " ".join(_fmt(v) for v in values)
+
+
+def _rpy(rotation: np.ndarray) -> tuple[float, float, float]:
+    """URDF roll-pitch-yaw (R = Rz(yaw)·Ry(pitch)·Rx(roll)) of a rotation matrix."""
+    pitch = atan2(-rotation[2, 0], sqrt(rotation[0, 0] ** 2 + rotation[1, 0] ** 2))
+    if abs(abs(pitch) - pi / 2) < 1e-9:  # gimbal lock: fold yaw into roll
+        return atan2(-rotation[1, 2], rotation[1, 1]), pitch, 0.0
+    return atan2(rotation[2, 1], rotation[2, 2]), pitch, atan2(rotation[1, 0], rotation[0, 0])
+
+
+def _origin(transform: np.ndarray) -> str:
+    return f'<origin xyz="{_vec(transform[:3, 3])}" rpy="{_vec(_rpy(transform[:3, :3]))}"/>'
+
+
+def _box_inertia(mass: float, size) -> tuple[float, float, float]:
+    x, y, z = size
+    return mass * (y * y + z * z) / 12.0, mass * (x * x + z * z) / 12.0, mass * (x * x + y * y) / 12.0
+
+
+def _cylinder_inertia(mass: float, radius: float, length: float) -> tuple[float, float, float]:
+    side = mass * (3.0 * radius * radius + length * length) / 12.0
+    return side, side, mass * radius * radius / 2.0
+
+
+def _inertial(mass: float, center, diagonal) -> str:
+    ixx, iyy, izz = diagonal
+    return (
+        f'    <inertial>\n      <origin xyz="{_vec(center)}" rpy="0 0 0"/>\n'
+        f'      <mass value="{_fmt(mass)}"/>\n'
+        f'      <inertia ixx="{_fmt(ixx)}" ixy="0" ixz="0" iyy="{_fmt(iyy)}" iyz="0" izz="{_fmt(izz)}"/>\n'
+        f"    </inertial>\n"
+    )
+
+
+def _shape(geometry: str, center, rgba, rpy=(0.0, 0.0, 0.0)) -> str:
+    origin = f'<origin xyz="{_vec(center)}" rpy="{_vec(rpy)}"/>'
+    return (
+        f"    <visual>\n      {origin}\n      <geometry>{geometry}</geometry>\n"
+        f'      <material name="c{_vec(rgba).replace(" ", "_")}"><color rgba="{_vec(rgba)}"/></material>\n'
+        f"    </visual>\n"
+        f"    <collision>\n      {origin}\n      <geometry>{geometry}</geometry>\n    </collision>\n"
+    )
+
+
+def _box(extent_min, extent_max, rgba) -> tuple[str, np.ndarray, np.ndarray]:
+    lo, hi = np.asarray(extent_min, float), np.asarray(extent_max, float)
+    size, center = hi - lo, (hi + lo) / 2.0
+    return _shape(f'<box size="{_vec(size)}"/>', center, rgba), size, center
+
+
+def _palm_link() -> str:
+    length = kin.DW
+    center = (0.0, 0.0, length / 2.0)
+    body = _shape(f'<cylinder radius="{_fmt(PALM_RADIUS)}" length="{_fmt(length)}"/>', center, PALM_RGBA)
+    inertia = _cylinder_inertia(PALM_MASS, PALM_RADIUS, length)
+    return f'  <link name="palm">\n{_inertial(PALM_MASS, center, inertia)}{body}  </link>\n'
+
+
+def _knuckle_link(name: str) -> str:
+    half = FINGER_WIDTH / 2.0
+    shape, size, center = _box((KNUCKLE_START, -half, -KNUCKLE_BELOW), (KNUCKLE_END, half, KNUCKLE_ABOVE), KNUCKLE_RGBA)
+    return f'  <link name="{name}">\n{_inertial(KNUCKLE_MASS, center, _box_inertia(KNUCKLE_MASS, size))}{shape}  </link>\n'
+
+
+def _inner_link(name: str) -> str:
+    half_w, half_t = FINGER_WIDTH / 2.0, FINGER_THICKNESS / 2.0
+    shape, size, center = _box((INNER_START, -half_t, -half_w), (kin.A2 + half_t / 2.0, half_t, half_w), LINK_RGBA)
+    return f'  <link name="{name}">\n{_inertial(INNER_LINK_MASS, center, _box_inertia(INNER_LINK_MASS, size))}{shape}  </link>\n'
+
+
+def _outer_link(name: str) -> str:
+    half_w = FINGER_WIDTH / 2.0
+    shape, size, center = _box((OUTER_START, -OUTER_BACK, -half_w), (kin.A3, kin.D3, half_w), LINK_RGBA)
+    # A rounded fingertip: a cylinder across the finger at the end of the link, as thick as the link.
+    tip_radius = (kin.D3 + OUTER_BACK) / 2.0
+    tip_center = (kin.A3, (kin.D3 - OUTER_BACK) / 2.0, 0.0)
+    tip = _shape(f'<cylinder radius="{_fmt(tip_radius)}" length="{_fmt(FINGER_WIDTH)}"/>', tip_center, TIP_RGBA)
+    return f'  <link name="{name}">\n{_inertial(OUTER_LINK_MASS, center, _box_inertia(OUTER_LINK_MASS, size))}{shape}{tip}  </link>\n'
+
+
+def _tip_link(name: str) -> str:
+    tiny = 1e-7  # kg·m², a point-like marker
+    return f'  <link name="{name}">\n{_inertial(TIP_FRAME_MASS, (0.0, 0.0, 0.0), (tiny, tiny, tiny))}  </link>\n'
+
+
+def _joint(name: str, kind: str, parent: str, child: str, transform: np.ndarray, axis=None, limits=None) -> str:
+    text = f'  <joint name="{name}" type="{kind}">\n    <parent link="{parent}"/>\n    <child link="{child}"/>\n'
+    text += f"    {_origin(transform)}\n"
+    if axis is not None:
+        text += f'    <axis xyz="{_vec(axis)}"/>\n'
+    if limits is not None:
+        lower, upper = limits
+        text += (
+            f'    <limit lower="{_fmt(lower)}" upper="{_fmt(upper)}" effort="{_fmt(FINGER_JOINT_EFFORT)}" '
+            f'velocity="{_fmt(FINGER_JOINT_VELOCITY)}"/>\n'
+            f'    <dynamics damping="{_fmt(JOINT_DAMPING)}" friction="0"/>\n'
+        )
+    return text + "  </joint>\n"
+
+
+def generate_urdf() -> str:
+    """The BH8-262 URDF text (deterministic: equal inputs give byte-identical output)."""
+    parts = ['<?xml version="1.0"?>\n', "<!-- Generated by bh8_gym.hand_urdf from bh8_gym.kinematics. Do not edit. -->\n"]
+    parts.append('<robot name="bh8_262">\n')
+    parts.append(_palm_link())
+    for finger in kin.FINGERS:
+        prefix = f"f{finger}"
+        rows = kin.dh_rows(finger, 0.0, 0.0, 0.0)
+        # Joint 1: theta = r·Θk1 - (π/2)·j, so a fixed offset of -(π/2)·j and an axis of r·z.
+        knuckle_transform = kin.dh_transform(*rows[0])
+        parts.append(_knuckle_link(f"{prefix}_knuckle"))
+        if kin.FINGER_R[finger] == 0:
+            parts.append(_joint(f"{prefix}_knuckle_fixed", "fixed", "palm", f"{prefix}_knuckle", knuckle_transform))
+        else:
+            parts.append(
+                _joint(
+                    f"{prefix}_spread_joint", "revolute", "palm", f"{prefix}_knuckle", knuckle_transform,
+                    axis=(0.0, 0.0, float(kin.FINGER_R[finger])), limits=kin.SPREAD_RANGE,
+                )
+            )
+        # Joints 2 and 3: theta = Θ + Φ, fixed offset Φ, axis z. Tip: fixed.
+        parts.append(_inner_link(f"{prefix}_inner"))
+        parts.append(
+            _joint(f"{prefix}_inner_joint", "revolute", f"{prefix}_knuckle", f"{prefix}_inner",
+                   kin.dh_transform(*rows[1]), axis=(0.0, 0.0, 1.0), limits=kin.INNER_RANGE)
+        )
+        parts.append(_outer_link(f"{prefix}_outer"))
+        parts.append(
+            _joint(f"{prefix}_outer_joint", "revolute", f"{prefix}_inner", f"{prefix}_outer",
+                   kin.dh_transform(*rows[2]), axis=(0.0, 0.0, 1.0), limits=kin.OUTER_RANGE)
+        )
+        parts.append(_tip_link(f"{prefix}_tip"))
+        parts.append(_joint(f"{prefix}_tip_fixed", "fixed", f"{prefix}_outer", f"{prefix}_tip", kin.dh_transform(*rows[3])))
+    parts.append("</robot>\n")
+    return "".join(parts)
+
+
+def default_output_path() -> Path:
+    """assets/bh8_262.urdf in the source checkout."""
+    return Path(__file__).resolve().parent.parent / "assets" / "bh8_262.urdf"
+
+
+def cached_urdf_path() -> Path:
+    """A file holding the generated URDF, for PyBullet's loadURDF; works from a wheel (no assets/).
+
+    The file name carries a hash of the text, so a changed generator never loads a stale cache.
+    """
+    text = generate_urdf()
+    digest = hashlib.sha256(text.encode()).hexdigest()[:16]
+    cache_root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "bh8-gym"
+    for directory in (cache_root, Path(tempfile.gettempdir()) / f"bh8-gym-{os.getuid()}"):
+        path = directory / f"bh8_262-{digest}.urdf"
+        if path.is_file() and path.read_text() == text:
+            return path
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            handle, temporary = tempfile.mkstemp(dir=directory, suffix=".urdf.tmp")
+            with os.fdopen(handle, "w") as stream:
+                stream.write(text)
+            os.replace(temporary, path)  # atomic: parallel processes never read a half-written file
+            return path
+        except OSError:
+            continue
+    raise OSError(f"cannot write the hand URDF cache under {cache_root} or {tempfile.gettempdir()}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bh8_gym.hand_urdf", description=__doc__.splitlines()[0])
+    parser.add_argument("--output", type=Path, default=default_output_path(), help="where to write (default: %(default)s)")
+    args = parser.parse_args(argv)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(generate_urdf())
+    print(args.output)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,832 @@
+"""The simulated BH8-262: a PyBullet world with the hand on a movable wrist, its drive train and sensors.
+
+This is the hardware below the HCTL-1100 chips (docs/architecture.md, Contract 1): four motors
+(1-3 fingers, 4 spread; positive motion closes), worm gears, the TorqueSwitch clutch, strain gauges
+and heat. Sources: manual §9.3 (TorqueSwitch, spread), §9.4 (strain gauges), §9.5 Equations 4-5
+(ratios), Table 7 (motors), §2 (temperature), App. A (speeds, mass); SPEC.md §1 and §8.
+
+Drive-train model (one finger):
+* The motor is a velocity source with a torque limit: `set_drive(m, counts_per_s, fraction)`.
+* Clutch engaged: the inner joint turns at M/125 degrees and the outer joint (relative to the inner
+  link) at M/375, so the outer link's angle to the palm is always M/93.75 (SPEC §1): the motor
+  position reported is 93.75 x that angle. Both joints are PyBullet velocity motors; their targets
+  are corrected towards the exact 3:1 relation every step (`coupling_rate`), which makes a blocked
+  outer link stop the inner one and vice versa (the whole finger stalls), and the motor's torque
+  budget is shared: inner torque + outer torque / 3 <= fraction x peak x 125 x efficiency.
+* TorqueSwitch: while closing, the torque the clutch passes to the inner link (the inner link's
+  share of the motor torque plus the rotor's impact when the link is stopped suddenly) above
+  `breakaway_base_torque + breakaway_preload_slope x preload` disengages the clutch: the inner link
+  locks (worm) where it is and the motor drives the outer link alone at M/93.75 degrees. Opening
+  re-engages it when M is back at the breakaway position. The preload is the peak clutch torque of
+  the last drive against the open stop (HI, O to the stop); a breakaway resets it to zero.
+* Worm drives do not back-drive: an unpowered finger, or one pushed against its drive direction,
+  is held by a lock torque until the load drops below what the motor can push. The spread is
+  back-drivable: unpowered it has only `spread_friction_torque`; F1 and F2 spread symmetrically
+  (a gear constraint couples them).
+* Strain gauge = offset + gain x outer-joint torque, 8 bits. Heat: electronics + sum (torque/Km)^2.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+from bh8_gym import hand_urdf
+from bh8_gym import kinematics as kin
+
+MOTORS = (1, 2, 3, 4)
+SPREAD_MOTOR = 4
+NUM_JOINTS = 8  # URDF order: F1 spread/inner/outer, F2 spread/inner/outer, F3 inner/outer
+INNER_INDEX = (1, 4, 6)  # positions of the finger joints in the 8-joint arrays
+OUTER_INDEX = (2, 5, 7)
+SPREAD_INDEX = (0, 3)
+
+_DEG = math.pi / 180.0
+INNER_COUNTS_PER_RAD = kin.INNER_COUNTS_PER_DEG_262 / _DEG
+OUTER_ABS_COUNTS_PER_RAD = kin.OUTER_ABS_COUNTS_PER_DEG_262 / _DEG
+SPREAD_COUNTS_PER_RAD = kin.SPREAD_COUNTS_PER_DEG_262 / _DEG
+# Motor revolutions per joint revolution = counts per joint degree x 360 / (360 counts per motor rev).
+INNER_GEAR_RATIO = kin.INNER_COUNTS_PER_DEG_262
+OUTER_REL_GEAR_RATIO = kin.OUTER_REL_COUNTS_PER_DEG_262
+OUTER_ABS_GEAR_RATIO = kin.OUTER_ABS_COUNTS_PER_DEG_262
+SPREAD_GEAR_RATIO = kin.SPREAD_COUNTS_PER_DEG_262
+
+OBJECT_KINDS = ("box", "cylinder", "sphere", "capsule", "urdf", "mesh")
+
+
+class PlantError(ValueError):
+    """A bad argument to the plant's API (names the offending value)."""
+
+
+@dataclass
+class PlantParameters:
+    """Physical constants of the simulated hand and world; the domain-randomisation knobs.
+
+    Values the documents give cite them; the others are our estimates, each with its reason.
+    """
+
+    # Physics.
+    time_step: float = 0.002  # s; 500 Hz keeps contact stable with the light finger links (<= 2 ms)
+    solver_iterations: int = 50  # PyBullet's default
+    gravity: float = 9.81  # m/s^2
+
+    # Motors (Table 7) and gears.
+    motor_peak_torque: float = 0.05  # N·m: Table 7, 5 N·cm
+    motor_constant: float = 0.0083  # N·m/sqrt(W): Table 7, 0.83 N·cm/sqrt(W)
+    motor_no_load_speed: float = 54_000.0  # counts/s (150 rev/s): above App. A's need (MCV 100 = 24,400/s)
+    finger_drive_efficiency: float = 0.4  # worm + cable drive (self-locking worms run below 50 %)
+    spread_drive_efficiency: float = 0.7  # spur gears of the back-drivable spread
+    worm_lock_torque: float = 40.0  # N·m at a joint: a self-locking worm holds any realistic load
+    spread_friction_torque: float = 0.03  # N·m per spread joint, unpowered (back-drivable, §9.3.2)
+    coupling_rate: float = 250.0  # 1/s: how fast joint targets pull the 3:1 relation back (stiff gearing)
+    lock_position_gain: float = 0.2  # PyBullet position gain that pins a locked joint (no drift)
+    backdrive_speed: float = 1e-3  # rad/s against the drive that counts as being back-driven
+
+    # TorqueSwitch (SPEC §8: our choice, documented in the module docstring).
+    breakaway_base_torque: float = 0.25  # N·m at the inner joint with no preload (10 % of full motor torque)
+    breakaway_preload_slope: float = 1.0  # §9.3.1: loosening torque equals tightening torque (screw)
+    rotor_impact_gain: float = 0.25  # N·m per rad/s of inner-link speed lost at impact: motor inertia
+    #   reflected through 125:1 against the drive's compliance. Chosen so default HI (IVEL 300) then
+    #   C at MCV 100 breaks away on an obstacle while MCV <= 40 does not (manual §8 troubleshooting).
+    impact_memory_time: float = 0.02  # s: how long a stopped link's speed counts as an impact
+    stop_tolerance: float = 0.05 * _DEG  # rad: a joint this close to its limit is against its stop
+    initial_preload: float = 2.8  # N·m: the hand starts as if a default HI had preloaded the clutches
+
+    # Strain gauges (§9.4, SPEC §1).
+    strain_gain: float = 127.5  # counts per N·m about the outer joint: about ±1 N·m over 8 bits
+    strain_offsets: tuple[int, int, int] | None = None  # no-load values; None: seeded in 100..140
+
+    # Thermal (§2: the hand runs at 40-60 °C).
+    ambient_temperature: float = 22.0  # °C, a lab
+    electronics_power: float = 8.0  # W dissipated by the CPU and power boards at idle (estimate)
+    thermal_resistance: float = 2.9  # K/W to ambient: idle steady state 22 + 8 x 2.9 = 45 °C
+    heat_capacity: float = 1000.0  # J/K: 1.18 kg of mostly aluminium (900 J/kg/K)
+    initial_temperature: float | None = None  # °C; None: the idle steady state
+
+    # Contact.
+    finger_friction: float = 0.8  # finger links on typical objects (aluminium/rubber-ish pads)
+    palm_friction: float = 0.6
+    table_friction: float = 0.6
+    object_friction: float = 0.7  # default for add_object
+    link_mass_scale: float = 1.0  # scales every hand link's mass (randomisation)
+
+    # World.
+    table: bool = True  # a table whose top is the plane z = 0
+    wrist_position: tuple[float, float, float] = (0.0, 0.0, 0.30)  # m: initial arm flange
+    wrist_orientation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)  # palm down (xyzw)
+    wrist_max_force: float = 2000.0  # N: the arm is much stronger than the hand
+
+    def validate(self) -> None:
+        if not 0.0 < self.time_step <= 0.002:
+            raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise PlantError(f"{item.name} must be finite, got {value!r}")
+        if self.strain_offsets is not None and len(self.strain_offsets) != 3:
+            raise PlantError(f"strain_offsets needs 3 values, got {self.strain_offsets!r}")
+
+
+@dataclass
+class _PlantState:
+    """The plant's own state besides PyBullet's (saved and restored with it)."""
+
+    time: float = 0.0
+    temperature: float = 0.0
+    drive_velocity: list = field(default_factory=lambda: [0.0] * 4)  # counts/s, clipped
+    drive_fraction: list = field(default_factory=lambda: [0.0] * 4)
+    drive_on: list = field(default_factory=lambda: [False] * 4)
+    engaged: list = field(default_factory=lambda: [True] * 3)
+    locked: list = field(default_factory=lambda: [True] * 3)  # worm holding (no motion)
+    breakaway_counts: list = field(default_factory=lambda: [None] * 3)
+    preload: list = field(default_factory=lambda: [0.0] * 3)  # N·m, set from params at construction
+    closing_peak: list = field(default_factory=lambda: [0.0] * 3)  # rad/s, decaying
+    opening_peak: list = field(default_factory=lambda: [0.0] * 3)
+    positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    previous_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    velocities: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    torques: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    motor_torques: list = field(default_factory=lambda: [0.0] * 4)
+    hold_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # where locked joints are held
+    held: list = field(default_factory=lambda: [False] * NUM_JOINTS)
+    wrist_target: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+    def copy(self) -> "_PlantState":
+        return replace(self, **{f.name: list(getattr(self, f.name)) for f in fields(self) if isinstance(getattr(self, f.name), list)})
+
+
+class HandPlant:
+    """The BH8-262 in PyBullet (Contract 1 in docs/architecture.md)."""
+
+    def __init__(self, params: PlantParameters | None = None, seed: int = 0, gui: bool = False):
+        self.params = params = replace(params) if params is not None else PlantParameters()
+        params.validate()
+        self._rng = np.random.default_rng(seed)
+        self._client = p.connect(p.GUI if gui else p.DIRECT)
+        if self._client < 0:
+            raise RuntimeError("PyBullet could not connect (gui=True needs a display)")
+        self._saved: dict[int, _PlantState] = {}
+        self._objects: list[int] = []
+        try:
+            self._build_world()
+        except Exception:
+            p.disconnect(self._client)
+            raise
+
+    # ---------------------------------------------------------------- construction
+    def _build_world(self) -> None:
+        prm, cid = self.params, self._client
+        self.dt = prm.time_step
+        p.setTimeStep(self.dt, physicsClientId=cid)
+        p.setGravity(0.0, 0.0, -prm.gravity, physicsClientId=cid)
+        p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations, deterministicOverlappingPairs=1, physicsClientId=cid)
+        self.table_id = self._make_table() if prm.table else None
+        position, orientation = tuple(prm.wrist_position), tuple(prm.wrist_orientation)
+        flags = p.URDF_USE_SELF_COLLISION | p.URDF_USE_SELF_COLLISION_EXCLUDE_ALL_PARENTS | p.URDF_USE_INERTIA_FROM_FILE
+        self.hand_id = p.loadURDF(str(hand_urdf.cached_urdf_path()), position, orientation, flags=flags, physicsClientId=cid)
+        self._joint_index_by_name = {}
+        self._link_index_by_name = {}
+        for index in range(p.getNumJoints(self.hand_id, physicsClientId=cid)):
+            info = p.getJointInfo(self.hand_id, index, physicsClientId=cid)
+            self._joint_index_by_name[info[1].decode()] = index
+            self._link_index_by_name[info[12].decode()] = index
+        self.joint_names = hand_urdf.JOINT_NAMES
+        self.joint_indices = [self._joint_index_by_name[name] for name in self.joint_names]
+        self.tip_link_indices = [self._link_index_by_name[name] for name in hand_urdf.TIP_LINK_NAMES]
+        # Every joint motor off first (PyBullet enables velocity motors by default).
+        all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
+        p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)
+        for link in [-1] + all_joints:
+            friction = prm.palm_friction if link == -1 else prm.finger_friction
+            info = p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)
+            p.changeDynamics(self.hand_id, link, lateralFriction=friction, mass=info[0] * prm.link_mass_scale, physicsClientId=cid)
+        self._com_offset = p.getDynamicsInfo(self.hand_id, -1, physicsClientId=cid)[3]
+        # F1 and F2 spread through one motor: a gear constraint keeps their angles equal.
+        self._spread_gear = p.createConstraint(
+            self.hand_id, self.joint_indices[0], self.hand_id, self.joint_indices[3], p.JOINT_GEAR,
+            [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=cid,
+        )
+        p.changeConstraint(self._spread_gear, gearRatio=-1.0, maxForce=prm.worm_lock_torque, erp=0.2, physicsClientId=cid)
+        # The arm flange: a fixed constraint whose world pose set_wrist_pose moves.
+        self._wrist_constraint = p.createConstraint(
+            self.hand_id, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0],
+            parentFramePosition=[-c for c in self._com_offset], childFramePosition=position,
+            childFrameOrientation=orientation, physicsClientId=cid,
+        )
+        p.changeConstraint(self._wrist_constraint, maxForce=prm.wrist_max_force, physicsClientId=cid)
+
+        # Derived constants (per step they are plain floats).
+        self._finger_capacity = prm.motor_peak_torque * INNER_GEAR_RATIO * prm.finger_drive_efficiency  # N·m, inner joint
+        self._outer_capacity = prm.motor_peak_torque * OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency  # after breakaway
+        self._spread_capacity = prm.motor_peak_torque * SPREAD_GEAR_RATIO * prm.spread_drive_efficiency
+        self._impact_decay = math.exp(-self.dt / prm.impact_memory_time)
+        self._targets = [0.0] * NUM_JOINTS
+        self._forces = [0.0] * NUM_JOINTS
+        self._position_gains = [0.0] * NUM_JOINTS
+        self._velocity_gains = [1.0] * NUM_JOINTS
+        if prm.strain_offsets is None:
+            self.strain_offsets = tuple(int(v) for v in self._rng.integers(100, 141, size=3))
+        else:
+            self.strain_offsets = tuple(int(v) for v in prm.strain_offsets)
+        idle = prm.ambient_temperature + prm.electronics_power * prm.thermal_resistance
+        self._state = _PlantState(
+            temperature=idle if prm.initial_temperature is None else float(prm.initial_temperature),
+            wrist_target=(position, orientation),
+            preload=[float(prm.initial_preload)] * 3,
+        )
+        self._read_joints()
+
+    def _make_table(self) -> int:
+        cid = self._client
+        half = (1.0, 1.0, 0.02)
+        collision = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        visual = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=(0.62, 0.47, 0.32, 1.0), physicsClientId=cid)
+        body = p.createMultiBody(0.0, collision, visual, basePosition=(0.0, 0.0, -half[2]), physicsClientId=cid)
+        p.changeDynamics(body, -1, lateralFriction=self.params.table_friction, physicsClientId=cid)
+        return body
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def time(self) -> float:
+        """Simulated seconds since construction."""
+        return self._state.time
+
+    @property
+    def temperature(self) -> float:
+        """Hand temperature, °C (lumped thermal mass)."""
+        return self._state.temperature
+
+    @property
+    def client(self) -> int:
+        """The PyBullet physics client id (for callers adding their own bodies or queries)."""
+        return self._client
+
+    # ---------------------------------------------------------------- drives
+    def _check_motor(self, motor) -> int:
+        if motor not in MOTORS or isinstance(motor, bool):
+            raise PlantError(f"motor must be 1, 2, 3 or 4, got {motor!r}")
+        return int(motor)
+
+    def set_drive(self, motor: int, velocity: float, torque_fraction: float) -> None:
+        """Power `motor`: drive towards `velocity` counts/s (+ closes) with at most torque_fraction x peak."""
+        index = self._check_motor(motor) - 1
+        velocity, torque_fraction = float(velocity), float(torque_fraction)
+        if not math.isfinite(velocity):
+            raise PlantError(f"velocity must be finite, got {velocity!r}")
+        if not 0.0 <= torque_fraction <= 1.0:
+            raise PlantError(f"torque_fraction must be in [0, 1], got {torque_fraction!r}")
+        limit = self.params.motor_no_load_speed
+        state = self._state
+        state.drive_velocity[index] = min(max(velocity, -limit), limit)
+        state.drive_fraction[index] = torque_fraction
+        state.drive_on[index] = True
+
+    def set_drive_off(self, motor: int) -> None:
+        """Unpower `motor`: finger worm drives self-lock; the spread is back-drivable."""
+        index = self._check_motor(motor) - 1
+        self._state.drive_on[index] = False
+        self._state.drive_velocity[index] = 0.0
+        self._state.drive_fraction[index] = 0.0
+
+    def set_drives(self, velocities, torque_fractions) -> None:
+        """All four motors at once (fast path). A NaN torque fraction turns that motor off."""
+        state, limit = self._state, self.params.motor_no_load_speed
+        if len(velocities) != 4 or len(torque_fractions) != 4:
+            raise PlantError(f"set_drives needs 4 velocities and 4 torque fractions, got {velocities!r}, {torque_fractions!r}")
+        for index in range(4):
+            fraction = float(torque_fractions[index])
+            if fraction != fraction:  # NaN: off
+                state.drive_on[index] = False
+                state.drive_velocity[index] = 0.0
+                state.drive_fraction[index] = 0.0
+                continue
+            velocity = float(velocities[index])
+            if not (0.0 <= fraction <= 1.0) or not math.isfinite(velocity):
+                raise PlantError(f"motor {index + 1}: velocity {velocity!r} must be finite and torque fraction {fraction!r} in [0, 1]")
+            state.drive_velocity[index] = min(max(velocity, -limit), limit)
+            state.drive_fraction[index] = fraction
+            state.drive_on[index] = True
+
+    # ---------------------------------------------------------------- stepping
+    def step(self) -> None:
+        """Advance one physics step of `dt` seconds."""
+        self._command_joints()
+        # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain so
+        # the worm holds its position exactly (a velocity-only lock drifts with PyBullet's solver).
+        p.setJointMotorControlArray(
+            self.hand_id, self.joint_indices, p.POSITION_CONTROL, targetPositions=self._hold_positions,
+            targetVelocities=self._targets, forces=self._forces, positionGains=self._position_gains,
+            velocityGains=self._velocity_gains, physicsClientId=self._client,
+        )
+        p.stepSimulation(physicsClientId=self._client)
+        self._read_joints()
+        self._update_after_step()
+
+    def _read_joints(self) -> None:
+        state = self._state
+        state.previous_positions[:] = state.positions
+        for k, joint in enumerate(p.getJointStates(self.hand_id, self.joint_indices, physicsClientId=self._client)):
+            state.positions[k] = joint[0]
+            state.velocities[k] = joint[1]
+            state.torques[k] = joint[3]
+
+    def _hold(self, joint: int, backdriven: bool = False) -> None:
+        """Lock `joint` (worm self-locking) where it is now, or where it was already held.
+
+        A joint found back-driven is held where it was before that step: the worm never let it move.
+        """
+        state = self._state
+        if not state.held[joint]:
+            state.held[joint] = True
+            state.hold_positions[joint] = state.previous_positions[joint] if backdriven else state.positions[joint]
+        self._targets[joint] = 0.0
+        self._forces[joint] = self.params.worm_lock_torque
+        self._position_gains[joint] = self.params.lock_position_gain
+
+    def _drive(self, joint: int, target: float, force: float) -> None:
+        self._state.held[joint] = False
+        self._targets[joint] = target
+        self._forces[joint] = force
+        self._position_gains[joint] = 0.0
+
+    def _command_joints(self) -> None:
+        """Joint velocity targets and force limits for this step from the drives and the clutch state."""
+        prm, state = self.params, self._state
+        self._hold_positions = state.hold_positions
+        q, w, tau = state.positions, state.velocities, state.torques
+        stop = prm.stop_tolerance
+        inner_open, inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
+        outer_open, outer_closed = kin.OUTER_RANGE[0] + stop, kin.OUTER_RANGE[1] - stop
+        for f in range(3):
+            i2, i3 = INNER_INDEX[f], OUTER_INDEX[f]
+            velocity = state.drive_velocity[f]
+            on = state.drive_on[f] and velocity != 0.0 and state.drive_fraction[f] > 0.0
+            sign = 1.0 if velocity > 0.0 else -1.0
+            if state.engaged[f]:
+                capacity = state.drive_fraction[f] * self._finger_capacity
+                # Driving a link into its stop stalls the motor there (PyBullet's limit alone would
+                # let a motor pushing into it drag the other joint).
+                at_stop = (q[i2] >= inner_closed or q[i3] >= outer_closed) if velocity > 0.0 else (q[i2] <= inner_open)
+                backdriven = False
+                if not on or at_stop:
+                    locked = True
+                elif state.locked[f]:
+                    # Stay held while the load (reflected to the inner joint) is more than the motor can push.
+                    locked = sign * (tau[i2] + tau[i3] / 3.0) >= capacity
+                else:
+                    locked = backdriven = sign * (w[i2] + w[i3]) < -prm.backdrive_speed
+                state.locked[f] = locked
+                if locked:
+                    self._hold(i2, backdriven)
+                    self._hold(i3, backdriven)
+                    continue
+                omega = velocity / INNER_COUNTS_PER_RAD
+                correction = 0.5 * prm.coupling_rate * (q[i2] - 3.0 * q[i3])
+                # One motor: inner torque + outer torque / 3 within capacity (last step's loads).
+                floor = 0.05 * capacity
+                self._drive(i2, omega - correction, max(floor, capacity - max(0.0, sign * tau[i3]) / 3.0))
+                self._drive(i3, (omega + correction) / 3.0, 3.0 * max(floor, capacity - max(0.0, sign * tau[i2])))
+            else:
+                capacity = state.drive_fraction[f] * self._outer_capacity
+                self._hold(i2)  # the inner link stays where the clutch let go
+                at_stop = q[i3] >= outer_closed if velocity > 0.0 else q[i3] <= outer_open
+                backdriven = False
+                if not on or at_stop:
+                    locked = True
+                elif state.locked[f]:
+                    locked = sign * tau[i3] >= capacity
+                else:
+                    locked = backdriven = sign * w[i3] < -prm.backdrive_speed
+                state.locked[f] = locked
+                if locked:
+                    self._hold(i3, backdriven)
+                else:
+                    self._drive(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity)
+        # Spread: back-drivable; F2 follows F1 through the gear constraint.
+        s1, s2 = SPREAD_INDEX
+        friction = prm.spread_friction_torque
+        velocity = state.drive_velocity[3]
+        self._drive(s2, 0.0, friction)
+        if not state.drive_on[3]:
+            self._drive(s1, 0.0, friction)
+            return
+        force = max(friction, state.drive_fraction[3] * self._spread_capacity)
+        spread = q[s1]
+        low, high = kin.SPREAD_RANGE
+        if (velocity > 0.0 and spread >= high - stop) or (velocity < 0.0 and spread <= low + stop):
+            # Stalled at a stop: hold the stop itself (fighting PyBullet's limit row would drift).
+            state.hold_positions[s1] = high if velocity > 0.0 else low
+            state.held[s1] = True
+            self._targets[s1], self._forces[s1], self._position_gains[s1] = 0.0, force, prm.lock_position_gain
+        else:
+            self._drive(s1, velocity / SPREAD_COUNTS_PER_RAD, force)
+
+    def _update_after_step(self) -> None:
+        """Clutch events, preload, motor torques, heat and time, from the joint states just read."""
+        prm, state = self.params, self._state
+        q, w, tau = state.positions, state.velocities, state.torques
+        decay = self._impact_decay
+        heat = prm.electronics_power
+        km = prm.motor_constant
+        stop = prm.stop_tolerance
+        inner_open, inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
+        outer_closed = kin.OUTER_RANGE[1] - stop
+        for f in range(3):
+            i2, i3 = INNER_INDEX[f], OUTER_INDEX[f]
+            velocity = state.drive_velocity[f]
+            fraction = state.drive_fraction[f]
+            on = state.drive_on[f] and velocity != 0.0 and fraction > 0.0
+            sign = 1.0 if velocity > 0.0 else -1.0
+            inner_speed = w[i2]
+            previous_closing, previous_opening = state.closing_peak[f], state.opening_peak[f]
+            state.closing_peak[f] = max(inner_speed, previous_closing * decay, 0.0)
+            state.opening_peak[f] = max(-inner_speed, previous_opening * decay, 0.0)
+            if state.engaged[f]:
+                capacity = fraction * self._finger_capacity
+                if on and capacity > 0.0 and velocity > 0.0 and q[i3] < outer_closed:
+                    # Closing: the torque the clutch passes to the inner link when something holds that
+                    # link back (not while it merely accelerates), the outer link's load excluded.
+                    commanded = velocity / INNER_COUNTS_PER_RAD
+                    if q[i2] >= inner_closed:
+                        clutch = capacity
+                    elif state.locked[f] or (inner_speed < 0.5 * commanded and inner_speed <= previous_closing + 0.02 * commanded):
+                        clutch = min(tau[i2], capacity - max(0.0, tau[i3]) / 3.0)
+                    else:
+                        clutch = 0.0
+                    if clutch > 0.0:
+                        impact = prm.rotor_impact_gain * max(0.0, previous_closing - max(inner_speed, 0.0))
+                        clutch += impact * min(1.0, clutch / capacity)
+                        if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f]:
+                            self._break_away(f)
+                elif on and capacity > 0.0 and velocity < 0.0 and q[i2] <= inner_open:
+                    # Driven against the open stop: the clutch is tightened with the motor's torque plus
+                    # the rotor's impact (§9.3.1; slamming open harder preloads more, manual §8).
+                    impact = prm.rotor_impact_gain * max(0.0, previous_opening - max(-inner_speed, 0.0))
+                    state.preload[f] = max(state.preload[f], capacity + impact)
+            elif on and velocity < 0.0 and q[i3] <= q[i2] / 3.0:
+                # Opening: the outer link is back at the engaged relation (M at the breakaway position).
+                state.engaged[f] = True
+                state.locked[f] = False
+            torque = self._finger_motor_torque(f, on, sign, fraction)
+            state.motor_torques[f] = torque
+            heat += (torque / km) ** 2
+        s1 = SPREAD_INDEX[0]
+        if state.drive_on[3]:
+            limit = state.drive_fraction[3] * prm.motor_peak_torque
+            torque = min(max(tau[s1] / (SPREAD_GEAR_RATIO * prm.spread_drive_efficiency), -limit), limit)
+        else:
+            torque = 0.0
+        state.motor_torques[3] = torque
+        heat += (torque / km) ** 2
+        loss = (state.temperature - prm.ambient_temperature) / prm.thermal_resistance
+        state.temperature += self.dt * (heat - loss) / prm.heat_capacity
+        state.time += self.dt
+
+    def _finger_motor_torque(self, f: int, on: bool, sign: float, fraction: float) -> float:
+        if not on:
+            return 0.0
+        state, prm = self._state, self.params
+        limit = fraction * prm.motor_peak_torque
+        if state.locked[f]:
+            return sign * limit  # stalled against a load the worm holds: the motor pushes its maximum
+        tau = state.torques
+        if state.engaged[f]:
+            load = tau[INNER_INDEX[f]] + tau[OUTER_INDEX[f]] / 3.0
+            torque = load / (INNER_GEAR_RATIO * prm.finger_drive_efficiency)
+        else:
+            torque = tau[OUTER_INDEX[f]] / (OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency)
+        return min(max(torque, -limit), limit)
+
+    def _break_away(self, f: int) -> None:
+        state = self._state
+        state.engaged[f] = False
+        state.breakaway_counts[f] = self._finger_counts(f)
+        state.preload[f] = 0.0  # manual §8: the clutch needs a full open to be preloaded again
+        state.locked[f] = False
+
+    def _finger_counts(self, f: int) -> float:
+        q = self._state.positions
+        return (q[INNER_INDEX[f]] + q[OUTER_INDEX[f]]) * OUTER_ABS_COUNTS_PER_RAD
+
+    # ---------------------------------------------------------------- sensors
+    def motor_positions(self) -> np.ndarray:
+        """Motor counts (BH8-262 scale); 0 = the joint against its mechanical open stop."""
+        q = self._state.positions
+        return np.array(
+            [
+                (q[1] + q[2]) * OUTER_ABS_COUNTS_PER_RAD,
+                (q[4] + q[5]) * OUTER_ABS_COUNTS_PER_RAD,
+                (q[6] + q[7]) * OUTER_ABS_COUNTS_PER_RAD,
+                q[0] * SPREAD_COUNTS_PER_RAD,
+            ]
+        )
+
+    def motor_velocities(self) -> np.ndarray:
+        """Motor velocities, counts per second."""
+        w = self._state.velocities
+        return np.array(
+            [
+                (w[1] + w[2]) * OUTER_ABS_COUNTS_PER_RAD,
+                (w[4] + w[5]) * OUTER_ABS_COUNTS_PER_RAD,
+                (w[6] + w[7]) * OUTER_ABS_COUNTS_PER_RAD,
+                w[0] * SPREAD_COUNTS_PER_RAD,
+            ]
+        )
+
+    def motor_torques(self) -> np.ndarray:
+        """Motor-shaft torques of the last step, N·m (signed, + closes)."""
+        return np.array(self._state.motor_torques)
+
+    def outer_joint_torques(self) -> np.ndarray:
+        """Torque about each finger's outer joint (N·m, + = load against closing), what the gauges sense."""
+        tau = self._state.torques
+        return np.array([tau[i] for i in OUTER_INDEX])
+
+    def strain_gauges(self) -> np.ndarray:
+        """8-bit strain gauge values (§9.4): offset + gain x outer-joint torque; the spread reads 255."""
+        gain, tau = self.params.strain_gain, self._state.torques
+        values = [min(255, max(0, int(round(self.strain_offsets[f] + gain * tau[OUTER_INDEX[f]])))) for f in range(3)]
+        return np.array(values + [255], dtype=np.int64)
+
+    def clutch_engaged(self, finger: int) -> bool:
+        """True while finger 1-3's TorqueSwitch couples both joints to the motor."""
+        return self._state.engaged[self._check_finger(finger)]
+
+    def breakaway_position(self, finger: int) -> float | None:
+        """Motor counts at finger 1-3's last breakaway, or None if it never broke away."""
+        return self._state.breakaway_counts[self._check_finger(finger)]
+
+    def clutch_preload(self, finger: int) -> float:
+        """The clutch preload of finger 1-3 (N·m at the inner joint)."""
+        return self._state.preload[self._check_finger(finger)]
+
+    def breakaway_threshold(self, finger: int) -> float:
+        """Inner-joint torque (N·m) above which finger 1-3's clutch breaks away now."""
+        prm = self.params
+        return prm.breakaway_base_torque + prm.breakaway_preload_slope * self._state.preload[self._check_finger(finger)]
+
+    def _check_finger(self, finger) -> int:
+        if finger not in (1, 2, 3) or isinstance(finger, bool):
+            raise PlantError(f"finger must be 1, 2 or 3, got {finger!r}")
+        return int(finger) - 1
+
+    def joint_angles(self) -> np.ndarray:
+        """The 8 joint angles, radians, URDF order (F1 spread/inner/outer, F2 ..., F3 inner/outer)."""
+        return np.array(self._state.positions)
+
+    def fingertip_positions(self) -> np.ndarray:
+        """World positions (3x3, rows F1..F3) of the fingertip frames {T}."""
+        states = p.getLinkStates(self.hand_id, self.tip_link_indices, computeForwardKinematics=True, physicsClientId=self._client)
+        return np.array([s[4] for s in states])
+
+    def set_joint_angles(self, angles) -> None:
+        """Teleport the joints (radians, URDF order) with zero velocity; clutch engaged. For tests and resets."""
+        angles = np.asarray(angles, dtype=float)
+        if angles.shape != (NUM_JOINTS,) or not np.all(np.isfinite(angles)):
+            raise PlantError(f"set_joint_angles needs 8 finite angles, got {angles!r}")
+        for joint, angle in zip(self.joint_indices, angles):
+            p.resetJointState(self.hand_id, joint, float(angle), 0.0, physicsClientId=self._client)
+        state = self._state
+        state.engaged = [True] * 3
+        state.locked = [True] * 3
+        state.breakaway_counts = [None] * 3
+        self._read_joints()
+
+    # ---------------------------------------------------------------- wrist and world
+    def set_wrist_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0), teleport: bool = False) -> None:
+        """Move the arm flange to `position` (m) and `orientation` (quaternion xyzw); the wrist follows.
+
+        `teleport=True` also puts the hand there at once (resets, not motion).
+        """
+        position = tuple(float(v) for v in position)
+        orientation = tuple(float(v) for v in orientation)
+        norm = math.sqrt(sum(v * v for v in orientation)) if len(orientation) == 4 else 0.0
+        if len(position) != 3 or not all(math.isfinite(v) for v in position):
+            raise PlantError(f"wrist position must be 3 finite numbers, got {position!r}")
+        if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
+            raise PlantError(f"wrist orientation must be a unit quaternion (x, y, z, w), got {orientation!r}")
+        orientation = tuple(v / norm for v in orientation)
+        self._state.wrist_target = (position, orientation)
+        p.changeConstraint(
+            self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
+            maxForce=self.params.wrist_max_force, physicsClientId=self._client,
+        )
+        if teleport:
+            com = p.multiplyTransforms(position, orientation, self._com_offset, (0, 0, 0, 1))
+            p.resetBasePositionAndOrientation(self.hand_id, com[0], com[1], physicsClientId=self._client)
+            p.resetBaseVelocity(self.hand_id, (0, 0, 0), (0, 0, 0), physicsClientId=self._client)
+
+    def wrist_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The wrist frame's actual world pose: (position (3,), quaternion xyzw (4,))."""
+        com_position, com_orientation = p.getBasePositionAndOrientation(self.hand_id, physicsClientId=self._client)
+        inverse = p.invertTransform(self._com_offset, (0, 0, 0, 1))
+        position, orientation = p.multiplyTransforms(com_position, com_orientation, inverse[0], inverse[1])
+        return np.array(position), np.array(orientation)
+
+    def add_object(
+        self,
+        kind: str,
+        size=None,
+        *,
+        position=(0.0, 0.0, 0.1),
+        orientation=(0.0, 0.0, 0.0, 1.0),
+        mass: float = 0.1,
+        friction: float | None = None,
+        path: str | Path | None = None,
+        scale: float = 1.0,
+        fixed: bool = False,
+        color=(0.85, 0.35, 0.2, 1.0),
+    ) -> int:
+        """Add an object; returns its PyBullet body id.
+
+        kind "box": size = (x, y, z) full lengths, m; "cylinder"/"capsule": size = (radius, length),
+        the axis along z; "sphere": size = radius; "urdf": `path` loaded with globalScaling `scale`
+        (its own masses); "mesh": `path` (OBJ/STL) scaled by `scale`, with `mass` (convex hull for
+        collision). `fixed` makes it immovable (mass 0). `friction` defaults to params.object_friction.
+        """
+        cid = self._client
+        if kind not in OBJECT_KINDS:
+            raise PlantError(f"object kind must be one of {OBJECT_KINDS}, got {kind!r}")
+        mass = float(mass)
+        if not (math.isfinite(mass) and mass > 0.0):
+            raise PlantError(f"object mass must be positive, got {mass!r}")
+        scale = float(scale)
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise PlantError(f"object scale must be positive, got {scale!r}")
+        friction = self.params.object_friction if friction is None else float(friction)
+        if not (math.isfinite(friction) and friction >= 0.0):
+            raise PlantError(f"object friction must be >= 0, got {friction!r}")
+        position = [float(v) for v in position]
+        orientation = [float(v) for v in orientation]
+        if kind == "urdf":
+            body = p.loadURDF(str(self._existing(path)), position, orientation, globalScaling=scale,
+                              useFixedBase=fixed, physicsClientId=cid)
+        else:
+            if kind == "mesh":
+                mesh = str(self._existing(path))
+                shape = dict(shapeType=p.GEOM_MESH, fileName=mesh, meshScale=[scale] * 3)
+                collision = p.createCollisionShape(**shape, physicsClientId=cid)
+                visual = p.createVisualShape(**shape, rgbaColor=color, physicsClientId=cid)
+            else:
+                geometry = self._primitive(kind, size)
+                length = geometry.pop("length", None)
+                collision = p.createCollisionShape(**geometry, physicsClientId=cid)
+                if length is not None:  # createCollisionShape takes `height`, createVisualShape `length`
+                    geometry["length"] = geometry.pop("height")
+                visual = p.createVisualShape(**geometry, rgbaColor=color, physicsClientId=cid)
+            body = p.createMultiBody(0.0 if fixed else mass, collision, visual, position, orientation, physicsClientId=cid)
+        for link in range(-1, p.getNumJoints(body, physicsClientId=cid)):
+            p.changeDynamics(body, link, lateralFriction=friction, rollingFriction=1e-4, spinningFriction=1e-3, physicsClientId=cid)
+        self._objects.append(body)
+        return body
+
+    @staticmethod
+    def _existing(path) -> Path:
+        if path is None:
+            raise PlantError("this object kind needs a file path (path=...)")
+        resolved = Path(path).expanduser()
+        if not resolved.is_file():
+            raise PlantError(f"object file not found: {str(path)!r}")
+        return resolved
+
+    @staticmethod
+    def _primitive(kind: str, size) -> dict:
+        try:
+            values = [float(v) for v in (size if np.ndim(size) else [size])]
+        except (TypeError, ValueError):
+            raise PlantError(f"{kind} size must be numbers, got {size!r}") from None
+        expected = {"box": 3, "sphere": 1, "cylinder": 2, "capsule": 2}[kind]
+        if len(values) != expected or not all(math.isfinite(v) and v > 0.0 for v in values):
+            raise PlantError(f"{kind} size needs {expected} positive number(s), got {size!r}")
+        if kind == "box":
+            return dict(shapeType=p.GEOM_BOX, halfExtents=[v / 2.0 for v in values])
+        if kind == "sphere":
+            return dict(shapeType=p.GEOM_SPHERE, radius=values[0])
+        shape_type = p.GEOM_CYLINDER if kind == "cylinder" else p.GEOM_CAPSULE
+        return dict(shapeType=shape_type, radius=values[0], height=values[1], length=values[1])
+
+    def add_object_from_spec(self, spec: str) -> int:
+        """Add an object from a command-line spec (see `parse_object_spec`)."""
+        kwargs = parse_object_spec(spec)
+        return self.add_object(kwargs.pop("kind"), kwargs.pop("size", None), **kwargs)
+
+    def remove_object(self, body: int) -> None:
+        if body not in self._objects:
+            raise PlantError(f"no object with body id {body!r}")
+        p.removeBody(body, physicsClientId=self._client)
+        self._objects.remove(body)
+
+    @property
+    def objects(self) -> tuple[int, ...]:
+        return tuple(self._objects)
+
+    def object_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
+        return np.array(position), np.array(orientation)
+
+    def contacts(self, body_a: int, body_b: int | None = None) -> list:
+        """PyBullet contact points of body_a (with body_b if given), from the last step."""
+        if body_b is None:
+            return list(p.getContactPoints(bodyA=body_a, physicsClientId=self._client))
+        return list(p.getContactPoints(bodyA=body_a, bodyB=body_b, physicsClientId=self._client))
+
+    # ---------------------------------------------------------------- state
+    def save_state(self) -> int:
+        """Snapshot PyBullet and the plant's own state; returns an id for `restore_state`.
+
+        Bodies added or removed after the snapshot make it unrestorable (PyBullet's rule).
+        """
+        state_id = p.saveState(physicsClientId=self._client)
+        self._saved[state_id] = self._state.copy()
+        return state_id
+
+    def restore_state(self, state_id: int) -> None:
+        """Return PyBullet and the plant (clutch, preload, heat, drives, wrist target, time) to a snapshot."""
+        if state_id not in self._saved:
+            raise PlantError(f"no saved plant state with id {state_id!r}")
+        p.restoreState(stateId=state_id, physicsClientId=self._client)
+        self._state = self._saved[state_id].copy()
+        position, orientation = self._state.wrist_target
+        p.changeConstraint(
+            self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
+            maxForce=self.params.wrist_max_force, physicsClientId=self._client,
+        )
+
+    def remove_state(self, state_id: int) -> None:
+        if self._saved.pop(state_id, None) is None:
+            raise PlantError(f"no saved plant state with id {state_id!r}")
+        p.removeState(state_id, physicsClientId=self._client)
+
+    # ---------------------------------------------------------------- rendering and teardown
+    def render(self, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
+        """An RGB frame (H, W, 3) uint8 from TinyRenderer (headless); see bh8_gym.rendering.render_frame."""
+        from bh8_gym.rendering import render_frame
+
+        return render_frame(self, width, height, camera)
+
+    def close(self) -> None:
+        if self._client is not None and self._client >= 0:
+            try:
+                p.disconnect(self._client)
+            except p.error:
+                pass
+        self._client = -1
+
+    def __enter__(self) -> "HandPlant":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # a forgotten close must not leak the physics server
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def parse_object_spec(spec: str) -> dict:
+    """Parse an object spec for `bh8 serve --object` / `bh8 render --object` into add_object kwargs.
+
+    Forms: `box:X[xY[xZ]]`, `sphere:R`, `cylinder:RxL`, `capsule:RxL`, `path/to/model.urdf[:scale]`,
+    `path/to/mesh.obj[:scale]`; each optionally followed by `@x,y,z` (position, m) and `,mass=M`-style
+    options after `;` (e.g. `box:0.05x0.05x0.08@0,0,0.04;mass=0.2;friction=0.9`).
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise PlantError(f"object spec must be a non-empty string, got {spec!r}")
+    body, *options = spec.strip().split(";")
+    kwargs: dict = {}
+    if "@" in body:
+        body, where = body.rsplit("@", 1)
+        try:
+            position = [float(v) for v in where.split(",")]
+        except ValueError:
+            raise PlantError(f"bad position in object spec {spec!r}") from None
+        if len(position) != 3:
+            raise PlantError(f"object position needs x,y,z in {spec!r}")
+        kwargs["position"] = position
+    head, _, argument = body.partition(":")
+    lowered = head.lower()
+    try:
+        if lowered in ("box", "sphere", "cylinder", "capsule"):
+            numbers = [float(v) for v in argument.lower().split("x")] if argument else []
+            if lowered == "box" and len(numbers) == 1:
+                numbers *= 3
+            kwargs["kind"], kwargs["size"] = lowered, numbers
+        elif lowered.endswith(".urdf"):
+            kwargs.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0)
+        elif lowered.endswith((".obj", ".stl")):
+            kwargs.update(kind="mesh", path=head, scale=float(argument) if argument else 1.0)
+        else:
+            raise PlantError(f"unknown object kind in spec {spec!r}: expected box, sphere, cylinder, capsule, *.urdf or *.obj/*.stl")
+        for option in options:
+            name, _, value = option.partition("=")
+            if name not in ("mass", "friction", "scale"):
+                raise PlantError(f"unknown object option {name!r} in spec {spec!r}")
+            kwargs[name] = float(value)
+    except ValueError:
+        raise PlantError(f"bad number in object spec {spec!r}") from None
+    return kwargs

@@ -1,0 +1,158 @@
+"""Headless rendering of the simulated hand: TinyRenderer frames, PNG, GIF/MP4, and `bh8 render`.
+
+TinyRenderer (PyBullet's software renderer) needs no display or GPU, so frames render the same on
+CI, in subprocess vector environments and on a laptop.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An orbit camera looking at `target` (world metres) from `distance` at `yaw`/`pitch` degrees."""
+
+    target: tuple[float, float, float] = (0.0, 0.0, 0.14)
+    distance: float = 0.42
+    yaw: float = 40.0
+    pitch: float = -22.0
+    fov: float = 45.0
+    light_direction: tuple[float, float, float] = (0.4, -0.6, 1.0)
+
+
+DEFAULT_CAMERA = Camera()
+
+
+def _camera_for(plant, camera) -> Camera:
+    if camera is None:
+        # Frame the hand: look at a point between the wrist and the fingers.
+        position, orientation = plant.wrist_pose()
+        rotation = np.array(p.getMatrixFromQuaternion(orientation)).reshape(3, 3)
+        target = position + rotation @ np.array([0.0, 0.0, 0.10])
+        return Camera(target=tuple(float(v) for v in target))
+    if isinstance(camera, Camera):
+        return camera
+    if isinstance(camera, dict):
+        return Camera(**camera)
+    raise ValueError(f"camera must be None, a rendering.Camera or a dict of its fields, got {camera!r}")
+
+
+def render_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
+    """An RGB image (height, width, 3) uint8 of the plant's world, rendered headless (TinyRenderer)."""
+    if not (isinstance(width, int) and isinstance(height, int) and 16 <= width <= 4096 and 16 <= height <= 4096):
+        raise ValueError(f"width and height must be integers in 16..4096, got {width!r} x {height!r}")
+    cam = _camera_for(plant, camera)
+    view = p.computeViewMatrixFromYawPitchRoll(cam.target, cam.distance, cam.yaw, cam.pitch, 0.0, 2, physicsClientId=plant.client)
+    projection = p.computeProjectionMatrixFOV(cam.fov, width / height, 0.01, 5.0, physicsClientId=plant.client)
+    _, _, rgba, _, _ = p.getCameraImage(
+        width, height, view, projection, renderer=p.ER_TINY_RENDERER, shadow=1,
+        lightDirection=list(cam.light_direction), lightAmbientCoeff=0.55, lightDiffuseCoeff=0.5,
+        lightSpecularCoeff=0.15, physicsClientId=plant.client,
+    )
+    return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3].copy()
+
+
+def save_png(path, rgb: np.ndarray) -> Path:
+    """Write an (H, W, 3) uint8 image as PNG."""
+    import imageio.v2 as imageio
+
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"expected an (H, W, 3) uint8 image, got shape {rgb.shape} dtype {rgb.dtype}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    imageio.imwrite(path, rgb, format="png")
+    return path
+
+
+def write_animation(frames, path, fps: float = 20.0) -> Path:
+    """Write frames as a GIF (`.gif`) or MP4 (`.mp4`, needs the imageio-ffmpeg package)."""
+    import imageio.v2 as imageio
+
+    frames = [np.asarray(frame, dtype=np.uint8) for frame in frames]
+    if not frames:
+        raise ValueError("write_animation needs at least one frame")
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix.lower()
+    if suffix == ".gif":
+        imageio.mimsave(path, frames, format="GIF", duration=1000.0 / fps, loop=0)
+    elif suffix == ".mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401  (only checks that the backend exists)
+        except ImportError:
+            raise RuntimeError("writing MP4 needs the imageio-ffmpeg package; write a .gif instead") from None
+        imageio.mimsave(path, frames, format="FFMPEG", fps=fps, macro_block_size=1)
+    else:
+        raise ValueError(f"animation path must end in .gif or .mp4, got {str(path)!r}")
+    return path
+
+
+def close_hand(plant, seconds: float = 1.5, velocity: float = 24_414.0, torque_fraction: float = 1.0) -> None:
+    """Close the three fingers like a C at MCV 100 (App. A speed) for `seconds`, then leave them held."""
+    for motor in (1, 2, 3):
+        plant.set_drive(motor, velocity, torque_fraction)
+    for _ in range(int(round(seconds / plant.dt))):
+        plant.step()
+    for motor in (1, 2, 3):
+        plant.set_drive_off(motor)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--output", "-o", type=Path, default=Path("hand.png"), help="PNG file to write (default: %(default)s)")
+    parser.add_argument("--width", type=int, default=800)
+    parser.add_argument("--height", type=int, default=600)
+    parser.add_argument("--closed", action="store_true", help="close the fingers (around the objects) first")
+    parser.add_argument("--spread", type=float, default=0.0, help="spread angle, degrees (0-180)")
+    parser.add_argument(
+        "--object", action="append", default=[], metavar="SPEC",
+        help="add an object, e.g. box:0.05x0.05x0.08@0,0,0.04 or sphere:0.035 or model.urdf:1.5 (repeatable)",
+    )
+    parser.add_argument("--wrist-height", type=float, default=None, help="wrist height above the table, m (palm down)")
+    parser.add_argument("--yaw", type=float, default=DEFAULT_CAMERA.yaw)
+    parser.add_argument("--pitch", type=float, default=DEFAULT_CAMERA.pitch)
+    parser.add_argument("--distance", type=float, default=DEFAULT_CAMERA.distance)
+    parser.add_argument("--seed", type=int, default=0)
+
+
+def run(args) -> int:
+    from bh8_gym.plant import HandPlant, PlantError, PlantParameters
+
+    params = PlantParameters()
+    if args.wrist_height is not None:
+        params.wrist_position = (0.0, 0.0, float(args.wrist_height))
+    elif args.object:
+        params.wrist_position = (0.0, 0.0, 0.20)  # palm a few cm above a table-top object
+    if not 0.0 <= args.spread <= 180.0:
+        print(f"bh8 render: --spread must be 0..180 degrees, got {args.spread}")
+        return 2
+    with HandPlant(params=params, seed=args.seed) as plant:
+        try:
+            for spec in args.object:
+                plant.add_object_from_spec(spec)
+        except PlantError as error:
+            print(f"bh8 render: {error}")
+            return 2
+        plant.set_drive(4, 14_648.0 if args.spread > 0 else -14_648.0, 1.0)
+        target = args.spread * 17.5
+        for _ in range(500):  # settle objects; spread to its angle
+            if args.spread > 0 and plant.motor_positions()[3] >= target:
+                plant.set_drive(4, 0.0, 1.0)
+            plant.step()
+        if args.closed:
+            close_hand(plant)
+            for _ in range(100):
+                plant.step()
+        target_point = tuple(float(v) for v in _camera_for(plant, None).target)
+        camera = Camera(target=target_point, distance=args.distance, yaw=args.yaw, pitch=args.pitch)
+        save_png(args.output, render_frame(plant, args.width, args.height, camera))
+    print(args.output)
+    return 0

@@ -1,0 +1,402 @@
+"""`bh8 serve`: the simulated hand's firmware on a pseudo-terminal (docs/architecture.md Contract 3).
+
+The server owns a pty, prints the follower device path as the first line of stdout, and shovels
+bytes between the pty and a `Firmware` until SIGINT, SIGTERM or SIGHUP, then `Firmware.shutdown()`
+persists the never-reset counters and it exits 0. Any serial program (pyserial, screen, minicom,
+Barrett's C++ API) opens the device like a USB serial adapter.
+
+Two ways to run simulated time (SPEC.md §6):
+- unpaced (default): after each read from the pty the firmware runs until it waits for input and
+  its output is written back; a command answers as soon as its simulated motion ends. An idle
+  server blocks in poll() with no timeout and uses no CPU.
+- `--realtime`: simulated time follows the wall clock in slices of `REALTIME_SLICE_S`; bytes are
+  fed to the firmware while a motion runs, so ^C (0x03) aborts it with ERR 16384 (§5.5 case 4).
+  Idle time between commands costs no simulated time here either (Contract 2), so an idle paced
+  server also sleeps in poll().
+
+The follower stays open in the server for its whole life, so a client may close and reopen the
+device without the server seeing a hang-up and without losing the hand's state.
+"""
+from __future__ import annotations
+
+import argparse
+import errno
+import os
+import select
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+FIRMWARE_PROFILES = ("4.3", "4.4")
+
+# Paced mode: the longest wait between firmware advances while a command or LOOP is active. One
+# physics step of the plant's default dt (Contract 1), so paced output is at most a step late.
+REALTIME_SLICE_S = 0.002
+# Paced mode: the most simulated time run in one go, so input (^C) is looked at this often even
+# when the physics runs slower than the wall clock.
+REALTIME_BURST_S = 0.02
+# Paced mode: when the physics falls further behind the wall clock than this, the excess is
+# forgiven, so a slow machine makes the hand slow rather than jerky in catch-up bursts.
+REALTIME_MAX_LAG_S = 0.25
+# Bytes kept for a client that is not reading. Past this the oldest are dropped, as a host UART
+# with nobody reading overruns; a reopening client flushes its input anyway (pyserial does).
+OUTPUT_BACKLOG_LIMIT = 1 << 20
+_READ_CHUNK = 4096
+
+
+def default_state_dir() -> Path:
+    """The per-user non-volatile store: $XDG_DATA_HOME/bh8-gym/state, else ~/.local/share/..."""
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    return Path(base) / "bh8-gym" / "state"
+
+
+# The scene `--object` builds (the plant's defaults hold the hand palm-down over a table, as the
+# grasp environments use it): the wrist at the world origin with the palm facing up and no table,
+# so world coordinates are hand coordinates (z out of the palm, metres) and an object rests on the
+# palm, where a GC closes on it.
+OBJECT_SCENE_WRIST_POSITION = (0.0, 0.0, 0.0)
+OBJECT_SCENE_WRIST_ORIENTATION = (0.0, 0.0, 0.0, 1.0)
+# Gap between the palm face (kinematics.DW from the wrist) and an object placed without @X,Y,Z;
+# small enough that it settles onto the palm at once.
+PALM_CLEARANCE_M = 0.002
+OBJECT_SPEC_HELP = (
+    "box:WxDxH, sphere:R, cylinder:RxL, capsule:RxL (metres), FILE.urdf[:SCALE] or "
+    "FILE.obj|stl[:SCALE], optionally @X,Y,Z (hand frame: wrist at the origin, z out of the palm; "
+    "default: resting on the palm centre) and ;mass=M;friction=F (syntax: bh8_gym.plant.parse_object_spec)"
+)
+
+
+def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False):
+    """The plant `bh8 serve` drives: the plant's default scene, or with `objects` (`--object`
+    SPEC strings) the palm-up scene above with each object placed. Raises ValueError naming a bad
+    spec (before any physics starts)."""
+    from bh8_gym.plant import HandPlant, PlantParameters, parse_object_spec
+
+    placements = []
+    for spec in objects:
+        try:
+            placements.append((spec, parse_object_spec(spec)))
+        except ValueError as error:
+            raise ValueError(f"object {spec!r}: {error}") from None
+    params = None
+    if placements:
+        params = PlantParameters(
+            table=False, wrist_position=OBJECT_SCENE_WRIST_POSITION, wrist_orientation=OBJECT_SCENE_WRIST_ORIENTATION
+        )
+    plant = HandPlant(params=params, seed=seed, gui=gui)
+    try:
+        for spec, placement in placements:
+            kind, size = placement.pop("kind"), placement.pop("size", None)
+            try:
+                body = plant.add_object(kind, size, **placement)
+            except ValueError as error:
+                raise ValueError(f"object {spec!r}: {error}") from None
+            if "position" not in placement:
+                _rest_on_palm(plant, body)
+    except BaseException:
+        plant.close()
+        raise
+    return plant
+
+
+def _rest_on_palm(plant, body: int) -> None:
+    """Move `body` so its bounding box sits centred on the palm, PALM_CLEARANCE_M above it."""
+    import pybullet
+
+    from bh8_gym.kinematics import DW
+
+    cid = plant.client
+    lows, highs = [], []
+    for link in range(-1, pybullet.getNumJoints(body, physicsClientId=cid)):
+        low, high = pybullet.getAABB(body, link, physicsClientId=cid)
+        lows.append(low)
+        highs.append(high)
+    low = [min(v[i] for v in lows) for i in range(3)]
+    high = [max(v[i] for v in highs) for i in range(3)]
+    position, orientation = pybullet.getBasePositionAndOrientation(body, physicsClientId=cid)
+    shift = (-(low[0] + high[0]) / 2.0, -(low[1] + high[1]) / 2.0, DW + PALM_CLEARANCE_M - low[2])
+    pybullet.resetBasePositionAndOrientation(
+        body, [c + d for c, d in zip(position, shift)], orientation, physicsClientId=cid
+    )
+
+
+def build_firmware(
+    state_dir: str | os.PathLike | None,
+    profile: str = "4.3",
+    seed: int = 0,
+    objects: Sequence[str] = (),
+    gui: bool = False,
+):
+    """The firmware on `build_plant(seed, objects, gui)`, its store in `state_dir`.
+
+    Shared by `bh8 serve` and the bh8sim:// URL handler so both serve the same hand. Without
+    objects the plant is the one `Firmware(store_dir=..., seed=...)` builds itself, so the pty and
+    in-process give identical bytes (Contract 2). A scene built from a Gymnasium env id
+    (`bh8 serve --env ID --seed N`) belongs here too: another way of building the plant, plus the
+    firmware's cycle_hook.
+    """
+    if profile not in FIRMWARE_PROFILES:
+        raise ValueError(f"firmware profile must be one of {FIRMWARE_PROFILES}, got {profile!r}")
+    from bh8_gym.firmware import Firmware
+
+    plant = build_plant(seed, objects, gui)
+    try:
+        firmware = Firmware(plant=plant, store_dir=None if state_dir is None else Path(state_dir), profile=profile, seed=seed)
+    except BaseException:
+        plant.close()
+        raise
+    return firmware
+
+
+def shutdown_firmware(firmware) -> None:
+    """Persist the firmware's counters and close its plant (Firmware.shutdown closes only a plant
+    it built itself; build_firmware builds the plant)."""
+    try:
+        firmware.shutdown()
+    finally:
+        firmware.plant.close()
+
+
+def open_raw_pty() -> tuple[int, int, str]:
+    """A new pty (leader fd, follower fd, follower path), raw and readable by its owner only.
+
+    Raw as cfmakeraw(3): no echo, no CR/LF translation, no signals from ^C, no XON/XOFF flow
+    control (RealTime data bytes may be 0x03, 0x0D, 0x11, 0x13), 8 bits, no parity.
+    """
+    import termios
+
+    leader, follower = os.openpty()
+    attrs = termios.tcgetattr(follower)
+    iflag, oflag, cflag, lflag = attrs[0], attrs[1], attrs[2], attrs[3]
+    iflag &= ~(termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP | termios.INLCR
+               | termios.IGNCR | termios.ICRNL | termios.IXON | termios.IXOFF | termios.IXANY
+               | termios.INPCK | termios.IGNPAR)
+    oflag &= ~termios.OPOST
+    lflag &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+    cflag = (cflag & ~(termios.CSIZE | termios.PARENB)) | termios.CS8 | termios.CREAD | termios.CLOCAL
+    attrs[0], attrs[1], attrs[2], attrs[3] = iflag, oflag, cflag, lflag
+    attrs[6][termios.VMIN] = 1
+    attrs[6][termios.VTIME] = 0
+    termios.tcsetattr(follower, termios.TCSANOW, attrs)
+    path = os.ttyname(follower)
+    os.chmod(path, 0o600)
+    os.set_blocking(leader, False)
+    return leader, follower, path
+
+
+class PtyServer:
+    """Serves one `Firmware` on a new pty until `stop()`; `device` is the follower's path."""
+
+    def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None):
+        self.firmware = firmware
+        self.realtime = bool(realtime)
+        self._leader, self._follower, self.device = open_raw_pty()
+        self._wake_read, self._wake_write = os.pipe()
+        os.set_blocking(self._wake_read, False)
+        os.set_blocking(self._wake_write, False)
+        self._stopping = False
+        self._backlog = bytearray()
+        self._poller = select.poll()
+        self._poller.register(self._wake_read, select.POLLIN)
+        self._poller.register(self._leader, select.POLLIN)
+        self._polling_output = False
+        self.link = None
+        if link is not None:
+            try:
+                self._make_link(Path(link))
+            except BaseException:
+                self._close_fds()
+                raise
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    def serve_forever(self) -> None:
+        """Serve until `stop()` (from a signal handler or another thread)."""
+        if self.realtime:
+            self._serve_paced()
+        else:
+            self._serve_unpaced()
+
+    def stop(self) -> None:
+        """Make `serve_forever` return soon; safe from a signal handler."""
+        self._stopping = True
+        try:
+            os.write(self._wake_write, b"\0")
+        except (BlockingIOError, OSError):
+            pass  # the pipe is full or closed: the loop is waking up or gone already
+
+    def close(self) -> None:
+        """Remove the --link symlink (if still ours) and close the pty."""
+        if self.link is not None:
+            try:
+                if os.readlink(self.link) == self.device:
+                    os.unlink(self.link)
+            except OSError:
+                pass  # already gone or replaced by someone else: leave it
+            self.link = None
+        self._close_fds()
+
+    def _close_fds(self) -> None:
+        for fd in (self._leader, self._follower, self._wake_read, self._wake_write):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._leader = self._follower = self._wake_read = self._wake_write = -1
+
+    def _make_link(self, path: Path) -> None:
+        if path.is_symlink() and not path.exists():
+            path.unlink()  # dangling: left behind by a server that was killed
+        elif path.exists() or path.is_symlink():
+            raise FileExistsError(f"--link {path}: already exists; remove it or choose another path")
+        os.symlink(self.device, path)
+        self.link = path
+
+    # -- the two serving loops -------------------------------------------------------------
+
+    def _serve_unpaced(self) -> None:
+        firmware = self.firmware
+        while not self._stopping:
+            self._wait(None)
+            data = self._read_input()
+            if data:
+                firmware.write(data)
+                firmware.run_until_idle()
+                self._queue_output(firmware.read())
+            self._flush_output()
+
+    def _serve_paced(self) -> None:
+        firmware = self.firmware
+        anchor_wall, anchor_sim = time.monotonic(), firmware.time
+        while not self._stopping:
+            active = firmware.in_loop or not firmware.idle
+            self._wait(REALTIME_SLICE_S if active else None)
+            now = time.monotonic()
+            if not active:
+                anchor_wall, anchor_sim = now, firmware.time  # idle time costs no simulated time
+            data = self._read_input()
+            if data:
+                firmware.write(data)
+            due = anchor_sim + (now - anchor_wall) - firmware.time
+            if due > REALTIME_MAX_LAG_S:
+                anchor_wall += due - REALTIME_MAX_LAG_S
+                due = REALTIME_MAX_LAG_S
+            if due > 0.0 or data:
+                firmware.run_for(min(max(due, 0.0), REALTIME_BURST_S))
+            self._queue_output(firmware.read())
+            self._flush_output()
+
+    # -- pty plumbing ------------------------------------------------------------------------
+
+    def _wait(self, timeout_s: float | None) -> None:
+        want_output = bool(self._backlog)
+        if want_output != self._polling_output:
+            self._poller.modify(self._leader, select.POLLIN | (select.POLLOUT if want_output else 0))
+            self._polling_output = want_output
+        self._poller.poll(None if timeout_s is None else timeout_s * 1000.0)
+        try:
+            os.read(self._wake_read, 64)
+        except BlockingIOError:
+            pass
+
+    def _read_input(self) -> bytes:
+        chunks = []
+        while True:
+            try:
+                chunk = os.read(self._leader, _READ_CHUNK)
+            except BlockingIOError:
+                break
+            except OSError as error:
+                if error.errno == errno.EIO:  # no follower open: cannot happen while we hold one
+                    break
+                raise
+            if not chunk:
+                break
+            chunks.append(chunk)
+        return b"".join(chunks)
+
+    def _queue_output(self, data: bytes) -> None:
+        if data:
+            self._backlog += data
+            overflow = len(self._backlog) - OUTPUT_BACKLOG_LIMIT
+            if overflow > 0:
+                del self._backlog[:overflow]
+
+    def _flush_output(self) -> None:
+        while self._backlog:
+            try:
+                written = os.write(self._leader, self._backlog)
+            except BlockingIOError:
+                return
+            del self._backlog[:written]
+
+
+# -- the `bh8 serve` subcommand ---------------------------------------------------------------
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--state", metavar="DIR", type=Path, default=None,
+        help=f"non-volatile store of the simulated hand (default: {default_state_dir()})",
+    )
+    parser.add_argument(
+        "--realtime", action="store_true",
+        help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); "
+             "default: answer as soon as the simulated motion ends",
+    )
+    parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default="4.3", help="firmware profile (default 4.3)")
+    parser.add_argument(
+        "--link", metavar="PATH", default=None,
+        help="also make a symlink PATH -> the device (e.g. /dev/ttyUSB0), removed on exit",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the plant's randomised constants (default 0)")
+    parser.add_argument("--gui", action="store_true", help="show the PyBullet GUI (needs a display)")
+    parser.add_argument(
+        "--object", metavar="SPEC", action="append", default=[], dest="objects",
+        help="place an object in the hand (repeatable; the palm faces up): " + OBJECT_SPEC_HELP,
+    )
+
+
+def _display_available() -> bool:
+    if sys.platform.startswith("linux") or "bsd" in sys.platform:
+        return bool(os.environ.get("DISPLAY"))
+    return True
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.gui and not _display_available():
+        print("bh8 serve: --gui needs a display and DISPLAY is not set; run without --gui "
+              "(or under xvfb-run)", file=sys.stderr)
+        return 2
+    state_dir = args.state if args.state is not None else default_state_dir()
+    try:
+        firmware = build_firmware(state_dir, args.firmware, args.seed, tuple(args.objects), args.gui)
+    except ValueError as error:
+        print(f"bh8 serve: {error}", file=sys.stderr)
+        return 2
+    try:
+        server = PtyServer(firmware, realtime=args.realtime, link=args.link)
+    except OSError as error:
+        shutdown_firmware(firmware)
+        print(f"bh8 serve: {error}", file=sys.stderr)
+        return 1
+
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        previous[signum] = signal.signal(signum, lambda *_: server.stop())
+    try:
+        print(server.device, flush=True)
+        mode = "paced to the wall clock" if args.realtime else "unpaced"
+        link = f" (link {server.link})" if server.link else ""
+        print(f"bh8 serve: firmware {args.firmware} on {server.device}{link}, {mode}, "
+              f"store {state_dir}; ^C to stop", file=sys.stderr, flush=True)
+        server.serve_forever()
+    finally:
+        try:
+            shutdown_firmware(firmware)
+        finally:
+            server.close()
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    return 0

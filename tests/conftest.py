@@ -1,0 +1,156 @@
+"""Shared fixtures: a host-side `Link` to a simulated hand, in-process or through a real pty.
+
+Conformance tests take the `link` fixture, which runs each test twice: against the firmware
+in-process and against `bh8 serve` on a pseudo-terminal through a plain pyserial client. The
+framing helpers follow SPEC.md §2: the hand echoes the line (not the CR), then sends "\\n\\r",
+output lines each ending "\\n\\r", then the prompt "=> ".
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+PROMPT = b"=> "
+
+
+class Link:
+    """A serial line to a hand: raw bytes plus the supervisory framing of SPEC.md §2."""
+
+    def write(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    def read_until(self, terminator: bytes, timeout: float) -> bytes:
+        raise NotImplementedError
+
+    def read_exact(self, count: int, timeout: float) -> bytes:
+        raise NotImplementedError
+
+    def command(self, line: str, timeout: float = 30.0) -> bytes:
+        """Send `line` + CR; return everything after the echo up to and including the prompt."""
+        data = line.encode("latin-1")
+        self.write(data + b"\r")
+        reply = self.read_until(PROMPT, timeout)
+        assert reply.startswith(data), f"echo of {line!r} expected, got {reply!r}"
+        return reply[len(data):]
+
+    def lines(self, line: str, timeout: float = 30.0) -> list[str]:
+        """The output lines of a command (between the echo's "\\n\\r" and the prompt)."""
+        reply = self.command(line, timeout)
+        assert reply.startswith(b"\n\r") and reply.endswith(PROMPT), f"bad framing: {reply!r}"
+        body = reply[2:-len(PROMPT)]
+        if not body:
+            return []
+        assert body.endswith(b"\n\r"), f"output lines must end with LF CR: {reply!r}"
+        return body[:-2].decode("latin-1").split("\n\r")
+
+
+class InProcessLink(Link):
+    """The firmware in this process: bytes in, `run_until_idle`, bytes out."""
+
+    def __init__(self, firmware):
+        self.firmware = firmware
+        self._buffer = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self.firmware.write(data)
+
+    def _pump(self) -> None:
+        self.firmware.run_until_idle()
+        self._buffer += self.firmware.read()
+
+    def read_until(self, terminator: bytes, timeout: float) -> bytes:
+        self._pump()
+        index = self._buffer.find(terminator)
+        if index < 0:
+            raise TimeoutError(f"no {terminator!r} in {bytes(self._buffer)!r}")
+        out = bytes(self._buffer[: index + len(terminator)])
+        del self._buffer[: index + len(terminator)]
+        return out
+
+    def read_exact(self, count: int, timeout: float) -> bytes:
+        self._pump()
+        if len(self._buffer) < count:
+            raise TimeoutError(f"wanted {count} bytes, have {bytes(self._buffer)!r}")
+        out = bytes(self._buffer[:count])
+        del self._buffer[:count]
+        return out
+
+
+class PtyLink(Link):
+    """`bh8 serve` in a subprocess, reached through its pty with a plain pyserial client."""
+
+    def __init__(self, state_dir: Path, extra_args: tuple[str, ...] = ()):
+        import serial
+
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(state_dir), *extra_args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        device = self.process.stdout.readline().strip()
+        if not device:
+            raise RuntimeError(f"bh8 serve printed no device: {self.process.stderr.read()}")
+        self.device = device
+        self.port = serial.Serial(device, 9600, timeout=0.05)
+
+    def write(self, data: bytes) -> None:
+        self.port.write(data)
+        self.port.flush()
+
+    def read_until(self, terminator: bytes, timeout: float) -> bytes:
+        deadline = time.monotonic() + timeout
+        data = bytearray()
+        while not data.endswith(terminator):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {terminator!r} within {timeout}s; got {bytes(data)!r}")
+            data += self.port.read(1)
+        return bytes(data)
+
+    def read_exact(self, count: int, timeout: float) -> bytes:
+        deadline = time.monotonic() + timeout
+        data = bytearray()
+        while len(data) < count:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"wanted {count} bytes within {timeout}s; got {bytes(data)!r}")
+            data += self.port.read(count - len(data))
+        return bytes(data)
+
+    def close(self) -> None:
+        self.port.close()
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+
+@pytest.fixture
+def inproc_link(tmp_path):
+    from bh8_gym.firmware import Firmware
+
+    firmware = Firmware(store_dir=tmp_path / "store", seed=0)
+    yield InProcessLink(firmware)
+    firmware.shutdown()
+
+
+@pytest.fixture
+def pty_link(tmp_path):
+    link = PtyLink(tmp_path / "store")
+    yield link
+    link.close()
+
+
+@pytest.fixture(params=["inprocess", "pty"])
+def link(request, tmp_path):
+    """The same conformance test in-process and through a real pty."""
+    if request.param == "inprocess":
+        yield request.getfixturevalue("inproc_link")
+    else:
+        yield request.getfixturevalue("pty_link")

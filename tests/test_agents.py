@@ -1,0 +1,336 @@
+"""Agents: training with checkpoints and resume, numpy export, evaluation statistics, baselines,
+and deployment over a serial port to the in-process simulated hand (bh8sim://).
+
+Kept fast: a few hundred env steps of training on BH8FingerReach-v0, a few episodes of evaluation.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bh8_gym.agents.evaluate import (
+    EpisodeResult,
+    per_object_table,
+    summarize,
+    wilson_interval,
+)
+from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, atomic_write_npz
+
+REACH = "BH8FingerReach-v0"
+
+
+# -- Wilson interval -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "successes, trials, low, high",
+    [
+        # reference values computed from the closed form (Wilson 1927; Newcombe 1998, method 3)
+        (0, 10, 0.0, 0.2775328),
+        (10, 10, 0.7224672, 1.0),
+        (5, 10, 0.2365931, 0.7634069),
+        (81, 263, 0.2553, 0.3662),  # Newcombe 1998 Table I example (81/263)
+    ],
+)
+def test_wilson_interval_reference_values(successes, trials, low, high):
+    got_low, got_high = wilson_interval(successes, trials)
+    assert got_low == pytest.approx(low, abs=1e-4)
+    assert got_high == pytest.approx(high, abs=1e-4)
+
+
+@given(trials=st.integers(1, 2000), data=st.data())
+@settings(max_examples=200, deadline=None)
+def test_wilson_bounds_solve_the_score_equation(trials, data):
+    """Each bound p satisfies (p_hat - p)^2 = z^2 p (1 - p) / n, the definition of the score interval."""
+    successes = data.draw(st.integers(0, trials))
+    low, high = wilson_interval(successes, trials)
+    p_hat = successes / trials
+    z = 1.959963984540054
+    assert 0.0 <= low <= p_hat <= high <= 1.0
+    for bound in (low, high):
+        if bound in (0.0, 1.0) and bound == p_hat:
+            continue  # degenerate end: the interval touches p_hat exactly
+        assert (p_hat - bound) ** 2 == pytest.approx(z * z * bound * (1 - bound) / trials, rel=1e-6, abs=1e-12)
+
+
+@pytest.mark.parametrize("successes, trials", [(1, 0), (-1, 5), (6, 5), (1.5, 5), (True, 5), (2, "10")])
+def test_wilson_rejects_bad_counts(successes, trials):
+    with pytest.raises(ValueError, match="must be"):
+        wilson_interval(successes, trials)
+
+
+def test_summary_and_per_object_table():
+    results = [
+        EpisodeResult("mug", True, 10.0, 300, 2.1, 0.5, 180),
+        EpisodeResult("mug", False, 2.0, 300, 2.1, None, 130),
+        EpisodeResult("box 5.0x5.0x5.0cm", True, 8.0, 300, 2.1, 0.7, 200),
+    ]
+    summary = summarize(results)
+    assert summary["successes"] == 2 and summary["episodes"] == 3
+    assert (summary["success_ci_low"], summary["success_ci_high"]) == pytest.approx(wilson_interval(2, 3))
+    assert summary["mean_grasp_time"] == pytest.approx(0.6)
+    assert summary["grasped_episodes"] == 2
+    assert summary["max_peak_strain"] == 200
+    table = per_object_table(results).splitlines()
+    assert table[0].startswith("| object |")
+    assert [line.split("|")[1].strip() for line in table[2:]] == ["box 5.0x5.0x5.0cm", "mug", "**all**"]
+    assert "1/2 (50%)" in table[3] and "2/3 (67%)" in table[4]
+
+
+# -- numpy policy files ----------------------------------------------------------------------
+
+
+def test_policy_file_rejects_pickles_and_foreign_files(tmp_path):
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object))
+    atomic_write_npz(tmp_path / "foreign.npz", {"x": np.zeros(3)})
+    np.savez(tmp_path / "pickled.npz", format=np.array(["bh8-numpy-policy/1"], dtype=object))
+    for name in ("foreign.npz", "pickled.npz"):
+        with pytest.raises(PolicyFileError):
+            NumpyPolicy(tmp_path / name)
+    with pytest.raises(PolicyFileError, match="cannot read"):
+        NumpyPolicy(tmp_path / "missing.npz")
+
+
+# -- training, resume, export (BH8FingerReach-v0) ---------------------------------------------
+
+
+def _tiny_reach_config(algorithm: str = "PPO") -> dict:
+    from bh8_gym.agents.train import default_config_path, load_config
+
+    config = load_config(default_config_path(algorithm, REACH))
+    if algorithm == "PPO":
+        config["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
+    else:
+        config["hyperparameters"].update(learning_starts=32, buffer_size=2_000, batch_size=32)
+    config["policy_kwargs"]["net_arch"] = [16, 16]
+    config["eval"].update(freq=128, episodes=1)
+    config["train"]["checkpoint_freq"] = 128
+    return config
+
+
+def test_train_writes_checkpoints_and_resume_continues_the_step_count(tmp_path):
+    """PPO on 2 SubprocVecEnv workers: a checkpoint, a best model and an evaluation row; --resume
+    continues from the checkpoint's step counter instead of starting again."""
+    from bh8_gym.agents.train import Trainer, TrainingError, read_evaluations
+
+    config = _tiny_reach_config("PPO")
+    out = tmp_path / "run"
+    state = Trainer(config, out, n_envs=2, seed=0, progress=False).run(256)
+    assert state["num_timesteps"] == 256  # 2 rollouts of 64 steps x 2 envs
+    checkpoint = json.loads((out / "checkpoints" / "latest.json").read_text())
+    assert checkpoint["num_timesteps"] == 256
+    for name in ("checkpoints/latest.zip", "best_model.zip", "final_model.zip", "run.json"):
+        assert (out / name).is_file(), name
+    assert [row["timesteps"] for row in read_evaluations(out)] == [128.0, 256.0]
+    assert not list(out.rglob("*.tmp*")), "temporary checkpoint files left behind"
+    assert any((out / "tb").rglob("events.out.tfevents*"))
+
+    with pytest.raises(TrainingError, match="--resume"):
+        Trainer(config, out, n_envs=2, progress=False).run(512)
+    resumed = Trainer(config, out, n_envs=2, seed=0, progress=False).run(512, resume=True)
+    assert resumed["num_timesteps"] == 512
+    assert [row["timesteps"] for row in read_evaluations(out)] == [128.0, 256.0, 384.0, 512.0]
+
+
+def test_sac_checkpoint_keeps_the_replay_buffer_and_resumes(tmp_path):
+    from stable_baselines3 import SAC
+
+    from bh8_gym.agents.train import Trainer
+
+    config = _tiny_reach_config("SAC")
+    out = tmp_path / "sac"
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(128)
+    assert (out / "checkpoints" / "latest_replay_buffer.pkl").is_file()
+    trainer = Trainer(config, out, n_envs=1, seed=0, progress=False)
+    env = trainer._vec_env()
+    try:
+        model = trainer._resume_model(env)
+        assert model.num_timesteps == 128
+        assert isinstance(model, SAC) and model.replay_buffer.size() == 128
+    finally:
+        env.close()
+
+
+def test_cli_train_rejects_contradicting_arguments(tmp_path, capsys):
+    from bh8_gym.cli import main
+
+    code = main(["train", "--algo", "SAC", "--config", str(_config_file("ppo_reach.toml")), "--out", str(tmp_path)])
+    assert code == 2
+    assert "contradicts" in capsys.readouterr().err
+
+
+def _config_file(name: str) -> Path:
+    from bh8_gym.agents.train import default_config_path
+
+    return default_config_path("PPO", REACH).with_name(name)
+
+
+@pytest.mark.parametrize("algorithm", ["PPO", "SAC"])
+def test_exported_policy_matches_sb3_actions(tmp_path, algorithm):
+    """The .npz runs with numpy alone and gives SB3's deterministic actions on random observations."""
+    from stable_baselines3 import PPO, SAC
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.export import max_action_difference
+    from bh8_gym.agents.policy_file import SB3Policy, export_sb3_policy
+
+    env = make_env(REACH, {})
+    try:
+        model = {"PPO": PPO, "SAC": SAC}[algorithm]("MlpPolicy", env, seed=1, device="cpu",
+                                                    policy_kwargs={"net_arch": [32, 24]})
+        # move the weights away from their init so a wrong layer order or activation shows
+        for parameter in model.policy.parameters():
+            parameter.data.add_(0.3 * torch_randn_like(parameter))
+        model.save(tmp_path / "model.zip")
+    finally:
+        env.close()
+    path = export_sb3_policy(model, tmp_path / "policy.npz", metadata={"env_id": REACH})
+    policy = NumpyPolicy(path)
+    assert policy.metadata["algorithm"] == algorithm and policy.metadata["env_id"] == REACH
+    with np.load(path, allow_pickle=False) as data:
+        assert "metadata" in data.files
+    assert max_action_difference(SB3Policy(tmp_path / "model.zip"), policy, 512) < 1e-5
+    single, _ = policy.predict(np.zeros(policy.observation_dim, dtype=np.float32))
+    assert single.shape == (policy.action_dim,)
+    with pytest.raises(ValueError, match="observation must have"):
+        policy.predict(np.zeros(policy.observation_dim + 1))
+
+
+def torch_randn_like(parameter):
+    import torch
+
+    generator = torch.Generator().manual_seed(parameter.numel())
+    return torch.randn(parameter.shape, generator=generator)
+
+
+def test_export_bakes_in_vecnormalize_statistics(tmp_path):
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import export_sb3_policy
+
+    venv = VecNormalize(DummyVecEnv([lambda: make_env(REACH, {})]), norm_reward=False)
+    try:
+        rng = np.random.default_rng(0)
+        venv.obs_rms.mean = rng.normal(size=venv.observation_space.shape)
+        venv.obs_rms.var = rng.uniform(0.1, 4.0, size=venv.observation_space.shape)
+        model = PPO("MlpPolicy", venv, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
+        policy = NumpyPolicy(export_sb3_policy(model, tmp_path / "p.npz", vec_normalize=venv))
+        raw = rng.normal(scale=3.0, size=(64, *venv.observation_space.shape)).astype(np.float32)
+        expected, _ = model.predict(venv.normalize_obs(raw), deterministic=True)
+        np.testing.assert_allclose(policy.predict(raw)[0], expected, atol=1e-5)
+    finally:
+        venv.close()
+
+
+# -- evaluation and baselines ----------------------------------------------------------------
+
+
+def _export_untrained_reach_policy(tmp_path, **metadata) -> Path:
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import export_sb3_policy
+
+    env = make_env(REACH, metadata.get("env_kwargs", {}))
+    try:
+        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
+    finally:
+        env.close()
+    return export_sb3_policy(model, tmp_path / "reach.npz", metadata={"env_id": REACH, "env_kwargs": {}, **metadata})
+
+
+def test_eval_cli_writes_table_and_report(tmp_path, capsys):
+    from bh8_gym.cli import main
+
+    policy = _export_untrained_reach_policy(tmp_path)
+    out = tmp_path / "report"
+    assert main(["eval", str(policy), "--episodes", "3", "--out", str(out), "--gif-episodes", "0"]) == 0
+    printed = capsys.readouterr().out
+    assert "95% Wilson CI" in printed and "| object |" in printed
+    report = json.loads((out / "results.json").read_text())
+    assert report["summary"]["episodes"] == 3 and len(report["episodes"]) == 3
+    low, high = wilson_interval(report["summary"]["successes"], 3)
+    assert report["summary"]["success_ci_low"] == pytest.approx(low)
+    assert (out / "table.md").read_text().splitlines()[-1].startswith("| **all** | 3 |")
+
+
+def test_training_curve_plot(tmp_path):
+    from bh8_gym.agents.evaluate import plot_training_curve
+
+    rows = [{"timesteps": t, "success_rate": s, "success_ci_low": max(s - 0.2, 0), "success_ci_high": min(s + 0.2, 1),
+             "mean_return": r} for t, s, r in [(1000, 0.0, -5.0), (2000, 0.4, 1.0), (3000, 0.7, 4.0)]]
+    path = plot_training_curve(rows, tmp_path / "curve.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="no evaluation rows"):
+        plot_training_curve([], tmp_path / "empty.png")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["loop", "supervisory"])
+def test_baselines_run_on_the_grasp_env(name):
+    """Both scripted grasps close the fingers on the object: strain rises and a grasp time is found."""
+    from bh8_gym.agents.baselines import make_baseline
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.evaluate import run_episodes, summarize
+
+    env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False})
+    try:
+        results = run_episodes(None, env, 2, seed=3, baseline=make_baseline(name, env))
+    finally:
+        env.close()
+    summary = summarize(results)
+    assert summary["episodes"] == 2
+    assert all(r.length > 0 and r.peak_strain is not None for r in results)
+    assert summary["grasped_episodes"] >= 1, results
+
+
+# -- deploy ----------------------------------------------------------------------------------
+
+
+def test_deploy_runs_cycles_on_bh8sim_and_logs_decodable_blocks(tmp_path, capsys):
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.cli import main
+
+    policy = _export_untrained_reach_policy(tmp_path)
+    log = tmp_path / "deploy.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy), "--cycles", "20",
+                 "--log", str(log), "--clock", "cycles"])
+    assert code == 0, capsys.readouterr()
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    blocks = [r for r in records if "cycle" in r]
+    assert len(blocks) == 1 + 20 + 1  # the "A" block, 20 policy cycles, the stop block
+    env = make_env(REACH, {})
+    try:
+        layout = env.unwrapped.layout
+        assert [r["line"] for r in records if r.get("event") == "command"][:-1] == [
+            line for line in env.unwrapped.setup_commands if not line.startswith("PSET BAUD")]
+    finally:
+        env.close()
+    assert bytes.fromhex(blocks[0]["control"]) == b"A"
+    for record in blocks:
+        layout.decode_feedback(bytes.fromhex(record["feedback"]))
+        control = bytes.fromhex(record["control"])
+        if control[:1] == b"C":
+            values = layout.decode_control(control[1:])
+            velocities = [v for v, (_, name) in zip(values, layout.control_fields) if name == "LCV"]
+            assert max(abs(v) for v in velocities) <= 100  # the default velocity clamp
+    assert bytes.fromhex(blocks[-1]["control"]) == layout.encode_control([0] * len(layout.control_fields))
+    assert records[-1]["event"] == "stop" and records[-1]["reason"] == "done"
+
+
+def test_deploy_refuses_privileged_policy(tmp_path, capsys):
+    from bh8_gym.cli import main
+
+    policy = _export_untrained_reach_policy(tmp_path, privileged=True)
+    log = tmp_path / "never.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy), "--log", str(log)])
+    assert code != 0
+    assert "privileged" in capsys.readouterr().err
+    assert not log.exists() or "cycle" not in log.read_text()

@@ -1,0 +1,369 @@
+"""The Gymnasium environments (bh8_gym.envs): contract checks, byte-level determinism, timing, spaces.
+
+One env step is one RealTime cycle through the emulated firmware (manual §6; SPEC.md §5 block
+layout, §6 time per cycle), so several tests check the raw blocks in `info`.
+"""
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import bh8_gym  # noqa: F401  (registers the environments)
+from bh8_gym.envs import ENV_IDS
+from bh8_gym.envs.randomization import RandomizationRanges, sample_plant_parameters
+from bh8_gym.envs.wrappers import ContinuousActions, bytes_to_unit, unit_to_bytes
+from bh8_gym.firmware import REALTIME_PROCESSING_S
+from bh8_gym.plant import PlantParameters
+from bh8_gym.realtime_codec import MotorFlags
+
+
+@pytest.fixture(scope="module")
+def grasp():
+    env = gym.make("BH8Grasp-v0").unwrapped
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def reach():
+    env = gym.make("BH8FingerReach-v0").unwrapped
+    yield env
+    env.close()
+
+
+def run_bytes(env, seed, actions):
+    """Feedback blocks of an episode start with `seed` under a fixed action sequence."""
+    _, info = env.reset(seed=seed)
+    blocks = [info["feedback_block"]]
+    for action in actions:
+        _, _, terminated, truncated, info = env.step(action)
+        blocks.append(info["feedback_block"])
+        if terminated or truncated:
+            break
+    return blocks
+
+
+def test_both_envs_are_registered():
+    from gymnasium.envs.registration import registry
+
+    for env_id in ENV_IDS:
+        assert env_id in registry
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_gymnasium_and_sb3_env_checkers_pass(env_id):
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    env = gym.make(env_id).unwrapped
+    try:
+        gym_check(env, skip_render_check=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # SB3 only recommends a symmetric float Box
+            sb3_check(env, warn=True)
+        wrapped = ContinuousActions(env)
+        sb3_check(wrapped, warn=True)
+    finally:
+        env.close()
+
+
+def test_setup_script_configures_the_firmware_as_the_layout_says(grasp):
+    """The setup script (HI, FSET of the LOOP flags, PSET LFT/LFDPD/BAUD, LOOP) runs without ERR on a
+    fresh firmware and leaves it in LOOP with the env's layout (§6.2, SPEC.md §5)."""
+    from bh8_gym.firmware import Firmware
+
+    firmware = Firmware(seed=0)
+    try:
+        for line in grasp.setup_commands:
+            reply = firmware.transact(line.encode() + b"\r")
+            assert b"ERR" not in reply and reply.endswith(b"=> "), (line, reply)
+        assert firmware.transact(grasp.loop_command.encode() + b"\r").endswith(b"*")
+        assert firmware.in_loop and firmware.loop_layout == grasp.layout
+        assert firmware.baud == 38400
+    finally:
+        firmware.shutdown()
+    assert grasp.setup_commands[0] == "HI" and grasp.loop_command == "1234LOOP"
+    assert [name for _, name in grasp.layout.control_fields] == ["LCV", "LCPG"] * 4
+    assert [name for _, name in grasp.layout.feedback_fields] == ["LFS", "LFAP"] * 4
+
+
+@pytest.mark.parametrize("baud", [38400, 9600])
+def test_a_step_costs_the_spec_cycle_time(baud):
+    """SPEC.md §6: (control + feedback bytes) × 10 / BAUD + processing per RealTime cycle."""
+    env = gym.make("BH8Grasp-v0", baud=baud, randomize=False).unwrapped
+    try:
+        env.reset(seed=0)
+        t0 = env.firmware.time
+        _, _, _, _, info = env.step(np.zeros(8, dtype=np.int16))
+        expected = (len(info["control_block"]) + len(info["feedback_block"])) * 10 / baud + REALTIME_PROCESSING_S
+        assert len(info["control_block"]) == 9 and len(info["feedback_block"]) == 13
+        assert env.firmware.time - t0 == pytest.approx(expected, abs=1e-9)
+        assert env.cycle_seconds == pytest.approx(expected)
+    finally:
+        env.close()
+
+
+def test_grasp_episode_runs_the_arm_schedule_and_ends_on_time(grasp):
+    """The episode lasts the arm schedule (2.0 s: 297 steps at 38400 baud); the wrist rises 10 cm."""
+    obs, _ = grasp.reset(seed=3)
+    start = grasp.plant.wrist_pose()[0].copy()
+    phase_index = grasp.observation_fields.index("phase_grasp")
+    assert obs[phase_index] == 1.0
+    steps, done, phases = 0, False, set()
+    while not done:
+        obs, reward, terminated, truncated, info = grasp.step(np.zeros(8, dtype=np.int16))
+        phases.add(int(np.argmax(obs[phase_index:phase_index + 3])))
+        assert set(info["reward_terms"]) == {"reach", "contact", "lift", "success"}
+        assert reward == pytest.approx(sum(info["reward_terms"].values()))
+        steps += 1
+        done = terminated or truncated
+    # Ends at the first step whose feedback arrives at or after 2.0 s on the host's clock.
+    assert truncated and 2.0 <= info["time"] < 2.0 + grasp.cycle_seconds
+    assert steps == int(np.ceil((2.0 - (info["time"] - steps * grasp.cycle_seconds)) / grasp.cycle_seconds - 1e-9))
+    assert 290 <= steps <= 300
+    assert phases == {0, 1, 2}
+    assert grasp.plant.wrist_pose()[0][2] - start[2] == pytest.approx(0.10, abs=0.005)
+    assert info["is_success"] is False  # fingers never moved: nothing was lifted
+
+
+def test_identical_seeds_give_identical_feedback_bytes():
+    """Same seed and actions: byte-identical feedback blocks, across two env instances and after
+    reusing one env (snapshot restore); another seed differs (randomised plant and object)."""
+    rng = np.random.default_rng(0)
+    env_a = gym.make("BH8Grasp-v0").unwrapped
+    env_b = gym.make("BH8Grasp-v0").unwrapped
+    try:
+        actions = [np.array(rng.integers(env_a.action_space.low, env_a.action_space.high + 1), dtype=np.int16)
+                   for _ in range(60)]
+        first = run_bytes(env_a, 11, actions)
+        run_bytes(env_a, 5, actions)  # something else in between
+        again = run_bytes(env_a, 11, actions)
+        other_env = run_bytes(env_b, 11, actions)
+        different = run_bytes(env_b, 12, actions)
+        assert first == again == other_env
+        assert first != different
+    finally:
+        env_a.close()
+        env_b.close()
+
+
+def test_observation_builder_reproduces_the_env_observation(grasp):
+    """What deploy computes from a raw feedback block equals the env's observation."""
+    obs, info = grasp.reset(seed=1)
+    values = grasp.layout.decode_feedback(info["feedback_block"])
+    assert np.array_equal(grasp.observation_from_feedback(values, np.zeros(8), grasp.elapsed()), obs)
+    action = np.array([50, 200, -20, 10, 127, 255, -128, 0], dtype=np.int16)
+    obs, _, _, _, info = grasp.step(action)
+    values = grasp.layout.decode_feedback(info["feedback_block"])
+    built = grasp.observation_from_feedback(values, action, grasp.elapsed())
+    assert np.array_equal(built, obs)
+    prev = grasp.observation_fields.index("prev_LCV1")
+    assert obs[prev] == pytest.approx(bytes_to_unit(np.array([50.0]), np.array([-128.0]), np.array([127.0]))[0])
+    lfap1 = grasp.observation_fields.index("LFAP1")
+    assert obs[lfap1] == pytest.approx(values[1] / 17500)
+
+
+@pytest.mark.parametrize(
+    "action, message",
+    [
+        (np.zeros(7, dtype=np.int16), "shape"),
+        (np.array([128, 0, 0, 0, 0, 0, 0, 0]), "out of range"),
+        (np.array([0, -1, 0, 0, 0, 0, 0, 0]), "out of range"),
+        (np.array([0, 256, 0, 0, 0, 0, 0, 0]), "out of range"),
+        (np.array([0.5, 0, 0, 0, 0, 0, 0, 0]), "whole numbers"),
+        (np.array([np.nan, 0, 0, 0, 0, 0, 0, 0]), "integers"),
+    ],
+)
+def test_invalid_actions_raise_naming_the_value(grasp, action, message):
+    grasp.reset(seed=0)
+    with pytest.raises(ValueError, match=message):
+        grasp.step(action)
+
+
+def test_continuous_actions_map_onto_the_loop_bytes(reach):
+    """[-1, 1] → LCV -128..127 linearly, clipped; NaN raises."""
+    low, high = np.array([-128.0, 0.0]), np.array([127.0, 255.0])
+    assert unit_to_bytes(np.array([-1.0, -1.0]), low, high).tolist() == [-128, 0]
+    assert unit_to_bytes(np.array([1.0, 1.0]), low, high).tolist() == [127, 255]
+    assert unit_to_bytes(np.array([5.0, -3.0]), low, high).tolist() == [127, 0]
+    assert unit_to_bytes(np.array([0.0, 0.0]), low, high).tolist() == [0, 128]
+    values = np.arange(-128, 128)
+    back = unit_to_bytes(bytes_to_unit(values, low[:1], high[:1]).astype(np.float64), low[:1], high[:1])
+    assert np.array_equal(back, values)
+    env = ContinuousActions(reach)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.ones(4, dtype=np.float32))
+    assert info["control_block"] == b"C" + bytes([127] * 4)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
+
+
+def test_reach_targets_success_terminates(reach):
+    """Targets at the initialised position (HI ends at 0, SPEC.md §4): success and termination."""
+    reach.reset(seed=0)
+    reach.set_targets([0, 0, 0, 0])
+    _, reward, terminated, truncated, info = reach.step(np.zeros(4, dtype=np.int16))
+    assert info["is_success"] and terminated and not truncated
+    assert info["reward_terms"]["success"] == 1.0
+    reach.reset(seed=0)
+    reach.set_targets([8000, 8000, 8000, 1500])
+    _, reward, terminated, _, info = reach.step(np.zeros(4, dtype=np.int16))
+    assert not terminated and reward < -0.3
+
+
+def test_reach_closing_reduces_the_error(reach):
+    """Positive LCV closes the fingers (SPEC.md §1: + closes), so the error to a closed target falls."""
+    reach.reset(seed=0)
+    reach.set_targets([6000, 6000, 6000, 1000])
+    errors = []
+    for _ in range(60):
+        _, reward, terminated, _, info = reach.step(np.array([100, 100, 100, 40], dtype=np.int16))
+        errors.append(-info["reward_terms"]["error"])
+    assert errors[-1] < errors[0] - 0.1
+
+
+def test_privileged_observations_only_on_request():
+    env = gym.make("BH8Grasp-v0", privileged=True, randomize=False).unwrapped
+    try:
+        obs, info = env.reset(seed=0)
+        assert "privileged" in info and "object_position" in info["privileged"]
+        assert obs.shape[0] == env.observation_space.shape[0] == len(env.observation_fields)
+        assert "object_dz" in env.observation_fields
+        values = env.layout.decode_feedback(info["feedback_block"])
+        host = env.observation_from_feedback(values, np.zeros(8), env.elapsed())
+        assert np.array_equal(host, obs[: len(host)]) and len(host) < len(obs)
+    finally:
+        env.close()
+
+
+def test_object_sets_and_user_files():
+    import pybullet_data
+
+    env = gym.make("BH8Grasp-v0", object_set="test", randomize=False).unwrapped
+    try:
+        for seed in range(3):
+            env.reset(seed=seed)
+            assert env.scene.episode.spec.name.endswith("0")
+    finally:
+        env.close()
+    urdf = f"{pybullet_data.getDataPath()}/cube_small.urdf:1.2"
+    env = gym.make("BH8Grasp-v0", object_files=[urdf], randomize=False).unwrapped
+    try:
+        env.reset(seed=0)
+        assert env.scene.episode.spec.kind == "urdf"
+        env.step(np.zeros(8, dtype=np.int16))
+    finally:
+        env.close()
+
+
+def test_randomisation_is_seeded_and_within_its_ranges():
+    base = PlantParameters()
+    ranges = RandomizationRanges()
+    a = sample_plant_parameters(base, np.random.default_rng(3), ranges)
+    assert a == sample_plant_parameters(base, np.random.default_rng(3), ranges)
+    assert a != sample_plant_parameters(base, np.random.default_rng(4), ranges)
+    assert 0.85 * base.motor_peak_torque <= a.motor_peak_torque <= 1.15 * base.motor_peak_torque
+    assert all(100 <= v <= 140 for v in a.strain_offsets)
+    assert 0.5 <= a.finger_friction <= 1.1
+    with pytest.raises(ValueError, match="finger_friction"):
+        RandomizationRanges(finger_friction=(1.0, 0.5))
+
+
+def test_randomisation_reaches_the_physics(grasp):
+    """A randomised reset changes the hand's PyBullet friction and the strain offsets."""
+    import pybullet
+
+    seen_friction, seen_offsets = set(), set()
+    for seed in range(3):
+        grasp.reset(seed=seed)
+        info = pybullet.getDynamicsInfo(grasp.plant.hand_id, 2, physicsClientId=grasp.plant.client)
+        seen_friction.add(round(info[1], 6))
+        seen_offsets.add(grasp.plant.strain_offsets)
+    assert len(seen_friction) == 3 and len(seen_offsets) == 3
+
+
+def test_bad_configuration_raises():
+    with pytest.raises(ValueError, match="baud"):
+        gym.make("BH8Grasp-v0", baud=115200)
+    with pytest.raises(ValueError, match="lcvc"):
+        gym.make("BH8Grasp-v0", lcvc=0)
+    with pytest.raises(ValueError, match="object_set"):
+        gym.make("BH8Grasp-v0", object_set="nope")
+    with pytest.raises(ValueError, match="no control data"):
+        gym.make("BH8Grasp-v0", lcv=False, lcpg=False)
+
+
+def test_other_loop_flags_change_the_layout_and_spaces():
+    env = gym.make("BH8Grasp-v0", motors=(1, 2, 3), lcpg=False, lfv=True, lfdp=True, lft=True,
+                   randomize=False).unwrapped
+    try:
+        assert env.action_space.shape == (3,)
+        assert env.layout.flags[1] == MotorFlags(LCV=True, LCPG=False, LFV=True, LFS=True, LFAP=True, LFDP=True)
+        obs, info = env.reset(seed=0)
+        assert len(info["feedback_block"]) == 1 + 3 * 5 + 2
+        assert "LFT" in env.observation_fields
+        temperature = obs[env.observation_fields.index("LFT")]
+        assert 0.3 < temperature < 0.6  # tenths of °C / 1000: the hand idles at 40-50 °C (§2)
+    finally:
+        env.close()
+
+
+def test_vector_envs_sb3_subproc_and_gymnasium_async():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    vec = make_vec_env("BH8FingerReach-v0", n_envs=2, seed=0, vec_env_cls=SubprocVecEnv,
+                       wrapper_class=ContinuousActions)
+    try:
+        obs = vec.reset()
+        assert obs.shape == (2, vec.observation_space.shape[0])
+        for _ in range(5):
+            obs, rewards, dones, infos = vec.step(np.zeros((2, 4), dtype=np.float32))
+        assert rewards.shape == (2,) and "feedback_block" in infos[0]
+    finally:
+        vec.close()
+    async_env = gym.vector.AsyncVectorEnv([lambda: gym.make("BH8FingerReach-v0") for _ in range(2)])
+    try:
+        obs, _ = async_env.reset(seed=[0, 1])
+        for _ in range(5):
+            obs, rewards, terminated, truncated, infos = async_env.step(np.zeros((2, 4), dtype=np.int16))
+        assert obs.shape[0] == 2 and not np.array_equal(obs[0], obs[1])
+    finally:
+        async_env.close()
+
+
+def test_serve_scene_for_a_seed_matches_the_env_reset():
+    """`bh8 serve --env ID --seed N` builds the same object, placement and plant parameters."""
+    from bh8_gym.envs.scenes import scene_for_seed
+    from bh8_gym.plant import HandPlant
+
+    env = gym.make("BH8Grasp-v0").unwrapped
+    plant = HandPlant()
+    try:
+        env.reset(seed=42)
+        scene = scene_for_seed("BH8Grasp-v0", plant, 42)
+        assert scene.episode == env.scene.episode
+        assert plant.params == env.plant.params
+        assert scene.table_top == pytest.approx(env.scene.table_top)
+    finally:
+        plant.close()
+        env.close()
+
+
+def test_rgb_array_rendering_and_episode_recording(tmp_path):
+    """Headless frames of the configured size; record_episode writes an animation file."""
+    from bh8_gym.envs.wrappers import record_episode
+
+    env = gym.make("BH8Grasp-v0", render_mode="rgb_array", render_size=(96, 72), randomize=False)
+    try:
+        env.reset(seed=0)
+        frame = env.render()
+        assert frame.shape == (72, 96, 3) and frame.dtype == np.uint8 and frame.std() > 5
+        result = record_episode(env, lambda obs: np.array([40, 150] * 3 + [0, 100], dtype=np.int16),
+                                tmp_path / "episode.gif", seed=0, every=30)
+        assert result["steps"] > 250 and (tmp_path / "episode.gif").stat().st_size > 1000
+    finally:
+        env.close()
