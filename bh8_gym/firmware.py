@@ -184,9 +184,17 @@ class FirmwareSnapshot:
 class Firmware:
     """The hand's firmware as a byte-stream machine with its own simulated clock (Contract 2)."""
 
-    def __init__(self, plant=None, store_dir=None, profile: str = "4.3", seed: int = 0):
+    def __init__(
+        self, plant=None, store_dir=None, profile: str = "4.3", seed: int = 0,
+        processing_time: float = REALTIME_PROCESSING_S,
+    ):
         if profile not in FIRMWARE_PROFILES:
             raise ValueError(f"firmware profile must be one of {FIRMWARE_PROFILES}, got {profile!r}")
+        processing_time = float(processing_time)
+        if not (processing_time >= 0.0 and processing_time < 1.0):
+            raise ValueError(f"processing_time must be in [0, 1) seconds, got {processing_time!r}")
+        #: Seconds the firmware spends on one RealTime block (SPEC.md §6); randomised per episode by the envs.
+        self.processing_time = processing_time
         self._owns_plant = plant is None
         if plant is None:
             from bh8_gym.plant import HandPlant
@@ -352,8 +360,8 @@ class Firmware:
         self._refresh_plant_state()
 
     def _refresh_plant_state(self) -> None:
-        self._positions = self.plant.motor_positions().tolist()
-        self._velocities = self.plant.motor_velocities().tolist()
+        self._positions = self.plant.motor_positions_list()
+        self._velocities = self.plant.motor_velocities_list()
 
     # ------------------------------------------------------------------ power-up and store
 
@@ -966,7 +974,7 @@ class Firmware:
         yield self.time + len(block) * seconds_per_byte
         if len(block) > 1:
             self._apply_control(layout, layout.decode_control(block[1:]))
-        yield self.time + REALTIME_PROCESSING_S
+        yield self.time + self.processing_time
         if header in HEADERS_WITH_FEEDBACK:
             self._output += layout.encode_feedback(self._feedback_values(layout))
         else:

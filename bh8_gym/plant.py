@@ -20,9 +20,17 @@ Drive-train model (one finger):
   re-engages it when M is back at the breakaway position. The preload is the peak clutch torque of
   the last drive against the open stop (HI, O to the stop); a breakaway resets it to zero.
 * Worm drives do not back-drive: an unpowered finger, or one pushed against its drive direction,
-  is held by a lock torque until the load drops below what the motor can push. The spread is
+  is held by a lock torque until the load drops below what the motor can push; the motor encoder
+  of a locked finger reads its hold position (the worm holds the motor shaft). Nor can a load drive
+  a finger faster than its motor turns: a joint at its target speed is braked there
+  (`overrun_brake_torque`). A finger that locks while its drive squeezes an object keeps pressing
+  with the latched torque (elastic wind-up, at most `lock_elastic_travel` further closed, never
+  opening past the hold position), so a grasp survives HOLD 0 (§9.3.1, FAQ A1). The spread is
   back-drivable: unpowered it has only `spread_friction_torque`; F1 and F2 spread symmetrically
   (a gear constraint couples them).
+* Rotor impact (breakaway and preload) counts the inner link's speed lost, at most the motor's
+  commanded speed (the worm: the link never ran faster than the motor).
+* `set_parameters` applies new PlantParameters to a live plant (domain randomisation).
 * Strain gauge = offset + gain x outer-joint torque, 8 bits. Heat: electronics + sum (torque/Km)^2.
 """
 from __future__ import annotations
@@ -43,6 +51,8 @@ NUM_JOINTS = 8  # URDF order: F1 spread/inner/outer, F2 spread/inner/outer, F3 i
 INNER_INDEX = (1, 4, 6)  # positions of the finger joints in the 8-joint arrays
 OUTER_INDEX = (2, 5, 7)
 SPREAD_INDEX = (0, 3)
+FINGER_JOINTS = ((0, 1, 2), (1, 4, 5), (2, 6, 7))  # (finger index, inner joint, outer joint)
+_THIRD = 1.0 / 3.0
 
 _DEG = math.pi / 180.0
 INNER_COUNTS_PER_RAD = kin.INNER_COUNTS_PER_DEG_262 / _DEG
@@ -82,8 +92,30 @@ class PlantParameters:
     worm_lock_torque: float = 40.0  # N·m at a joint: a self-locking worm holds any realistic load
     spread_friction_torque: float = 0.03  # N·m per spread joint, unpowered (back-drivable, §9.3.2)
     coupling_rate: float = 250.0  # 1/s: how fast joint targets pull the 3:1 relation back (stiff gearing)
+    # Share of the finger drive's torque the outer joint keeps when the inner one takes the load
+    # (stalled, engaged; the inner keeps 5 %): a rigid gear train splits the load by contact geometry,
+    # which rigid PyBullet contacts do not resolve. 6.5 % keeps a fingertip pressing (§5.5 HSG) after the
+    # inner link touched first, yet leaves the inner enough torque to break away (§9.3.1).
+    coupled_torque_floor: float = 0.065
     lock_position_gain: float = 0.2  # PyBullet position gain that pins a locked joint (no drift)
     backdrive_speed: float = 1e-3  # rad/s against the drive that counts as being back-driven
+    # A worm is not back-drivable in either sense: a load helping the motion cannot make the joint run
+    # faster than the motor turns it. A joint within this fraction of its target speed (or faster) is
+    # braked at its target speed unless its motor has to push at its limit.
+    overrun_tolerance: float = 0.02
+    # N·m at a joint available to brake an overrunning joint. Physically the worm's lock torque, but a
+    # PyBullet motor's limit is symmetric: the brake also pushes forward until the next step notices a
+    # stop or an object. The full motor torque at the inner joint (0.05 x 125 x 0.4) is far above the
+    # aiding loads (finger weight about 0.05 N·m) and no more than the motor itself could push.
+    overrun_brake_torque: float = 2.5
+    # Squeeze kept by a locked finger (§9.3.1, FAQ A1: the grasp stays with the motor current removed).
+    # The finger links and cable are elastic: a drive stalled against a load winds them up, and the
+    # self-locking worm keeps that load when it locks. Our estimate of the elastic travel: about 1° at
+    # a joint under full motor torque (aluminium links, steel cable).
+    lock_elastic_travel: float = 1.0 * _DEG  # rad of closing travel allowed beyond the hold position
+    # A drive pushing at this fraction of its torque limit or more is stalled against a load (not just
+    # moving the link), so its torque is latched when the finger locks.
+    squeeze_latch_fraction: float = 0.5
 
     # TorqueSwitch (SPEC §8: our choice, documented in the module docstring).
     breakaway_base_torque: float = 0.25  # N·m at the inner joint with no preload (10 % of full motor torque)
@@ -152,6 +184,13 @@ class _PlantState:
     motor_torques: list = field(default_factory=lambda: [0.0] * 4)
     hold_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # where locked joints are held
     held: list = field(default_factory=lambda: [False] * NUM_JOINTS)
+    latched_torque: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # N·m a locked joint keeps pressing
+    drive_capacity: list = field(default_factory=lambda: [0.0] * 3)  # N·m of last step's drive, + closing, 0 held
+    # The joint motor commands of the last step (the next step's decisions depend on them).
+    target_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    target_velocities: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    forces: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    position_gains: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
     wrist_target: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
     def copy(self) -> "_PlantState":
@@ -199,38 +238,23 @@ class HandPlant:
         # Every joint motor off first (PyBullet enables velocity motors by default).
         all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
         p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)
-        for link in [-1] + all_joints:
-            friction = prm.palm_friction if link == -1 else prm.finger_friction
-            info = p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)
-            p.changeDynamics(self.hand_id, link, lateralFriction=friction, mass=info[0] * prm.link_mass_scale, physicsClientId=cid)
+        self._links = [-1] + all_joints
+        self._unit_masses = [p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)[0] for link in self._links]
         self._com_offset = p.getDynamicsInfo(self.hand_id, -1, physicsClientId=cid)[3]
         # F1 and F2 spread through one motor: a gear constraint keeps their angles equal.
         self._spread_gear = p.createConstraint(
             self.hand_id, self.joint_indices[0], self.hand_id, self.joint_indices[3], p.JOINT_GEAR,
             [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=cid,
         )
-        p.changeConstraint(self._spread_gear, gearRatio=-1.0, maxForce=prm.worm_lock_torque, erp=0.2, physicsClientId=cid)
         # The arm flange: a fixed constraint whose world pose set_wrist_pose moves.
         self._wrist_constraint = p.createConstraint(
             self.hand_id, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0],
             parentFramePosition=[-c for c in self._com_offset], childFramePosition=position,
             childFrameOrientation=orientation, physicsClientId=cid,
         )
-        p.changeConstraint(self._wrist_constraint, maxForce=prm.wrist_max_force, physicsClientId=cid)
-
-        # Derived constants (per step they are plain floats).
-        self._finger_capacity = prm.motor_peak_torque * INNER_GEAR_RATIO * prm.finger_drive_efficiency  # N·m, inner joint
-        self._outer_capacity = prm.motor_peak_torque * OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency  # after breakaway
-        self._spread_capacity = prm.motor_peak_torque * SPREAD_GEAR_RATIO * prm.spread_drive_efficiency
-        self._impact_decay = math.exp(-self.dt / prm.impact_memory_time)
-        self._targets = [0.0] * NUM_JOINTS
-        self._forces = [0.0] * NUM_JOINTS
-        self._position_gains = [0.0] * NUM_JOINTS
         self._velocity_gains = [1.0] * NUM_JOINTS
-        if prm.strain_offsets is None:
-            self.strain_offsets = tuple(int(v) for v in self._rng.integers(100, 141, size=3))
-        else:
-            self.strain_offsets = tuple(int(v) for v in prm.strain_offsets)
+        self._sent_command = None  # the joint motor command last sent to PyBullet (resent only on change)
+        self._apply_parameters()
         idle = prm.ambient_temperature + prm.electronics_power * prm.thermal_resistance
         self._state = _PlantState(
             temperature=idle if prm.initial_temperature is None else float(prm.initial_temperature),
@@ -238,6 +262,64 @@ class HandPlant:
             preload=[float(prm.initial_preload)] * 3,
         )
         self._read_joints()
+
+    def _apply_parameters(self) -> None:
+        """Push `self.params` into PyBullet and derive the per-step constants (plain floats)."""
+        prm, cid, hand = self.params, self._client, self.hand_id
+        p.setGravity(0.0, 0.0, -prm.gravity, physicsClientId=cid)
+        p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations, physicsClientId=cid)
+        for link, unit_mass in zip(self._links, self._unit_masses):
+            friction = prm.palm_friction if link == -1 else prm.finger_friction
+            p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * prm.link_mass_scale, physicsClientId=cid)
+        if self.table_id is not None:
+            p.changeDynamics(self.table_id, -1, lateralFriction=prm.table_friction, physicsClientId=cid)
+        p.changeConstraint(self._spread_gear, gearRatio=-1.0, maxForce=prm.worm_lock_torque, erp=0.2, physicsClientId=cid)
+        p.changeConstraint(self._wrist_constraint, maxForce=prm.wrist_max_force, physicsClientId=cid)
+        if prm.strain_offsets is None:
+            if getattr(self, "strain_offsets", None) is None:
+                self.strain_offsets = tuple(int(v) for v in self._rng.integers(100, 141, size=3))
+        else:
+            self.strain_offsets = tuple(int(v) for v in prm.strain_offsets)
+        self._finger_capacity = prm.motor_peak_torque * INNER_GEAR_RATIO * prm.finger_drive_efficiency  # N·m, inner joint
+        self._outer_capacity = prm.motor_peak_torque * OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency  # after breakaway
+        self._spread_capacity = prm.motor_peak_torque * SPREAD_GEAR_RATIO * prm.spread_drive_efficiency
+        self._spread_torque_scale = 1.0 / (SPREAD_GEAR_RATIO * prm.spread_drive_efficiency)
+        self._inner_torque_scale = 1.0 / (INNER_GEAR_RATIO * prm.finger_drive_efficiency)
+        self._outer_torque_scale = 1.0 / (OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency)
+        self._impact_decay = math.exp(-self.dt / prm.impact_memory_time)
+        stop = prm.stop_tolerance
+        self._inner_open, self._inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
+        self._outer_open, self._outer_closed = kin.OUTER_RANGE[0] + stop, kin.OUTER_RANGE[1] - stop
+        self._spread_low, self._spread_high = kin.SPREAD_RANGE
+        self._joint_low = [kin.SPREAD_RANGE[0], kin.INNER_RANGE[0], kin.OUTER_RANGE[0]] * 2 + [kin.INNER_RANGE[0], kin.OUTER_RANGE[0]]
+        self._joint_high = [kin.SPREAD_RANGE[1], kin.INNER_RANGE[1], kin.OUTER_RANGE[1]] * 2 + [kin.INNER_RANGE[1], kin.OUTER_RANGE[1]]
+        self._spread_low_stop, self._spread_high_stop = self._spread_low + stop, self._spread_high - stop
+        self._brake_torque = prm.overrun_brake_torque
+        self._speed_limit = prm.motor_no_load_speed
+        self._overrun_speed_fraction = 1.0 - prm.overrun_tolerance
+        self._half_coupling_rate = 0.5 * prm.coupling_rate
+        self._torque_floor_fraction = prm.coupled_torque_floor
+        self._sent_command = None
+
+    def set_parameters(self, params: PlantParameters) -> None:
+        """Apply new PlantParameters to the live plant (domain randomisation between episodes).
+
+        Frictions, masses, motor strength, drive efficiencies, TorqueSwitch, strain gauges (gain and
+        offsets; offsets None keeps the current ones), thermal constants, gravity and solver
+        iterations take effect from the next step. The state (joint angles, clutch, preload, heat)
+        is kept; construction-only fields (time_step, table, wrist_position/orientation,
+        initial_temperature, initial_preload) must equal the current ones.
+        """
+        if not isinstance(params, PlantParameters):
+            raise PlantError(f"set_parameters needs PlantParameters, got {params!r}")
+        params = replace(params)
+        params.validate()
+        for name in ("time_step", "table", "wrist_position", "wrist_orientation", "initial_temperature", "initial_preload"):
+            new, old = getattr(params, name), getattr(self.params, name)
+            if new != old and not (isinstance(new, tuple) and tuple(new) == tuple(old)):
+                raise PlantError(f"{name} is fixed at construction ({old!r}); set_parameters got {new!r}")
+        self.params = params
+        self._apply_parameters()
 
     def _make_table(self) -> int:
         cid = self._client
@@ -293,85 +375,137 @@ class HandPlant:
 
     def set_drives(self, velocities, torque_fractions) -> None:
         """All four motors at once (fast path). A NaN torque fraction turns that motor off."""
-        state, limit = self._state, self.params.motor_no_load_speed
         if len(velocities) != 4 or len(torque_fractions) != 4:
             raise PlantError(f"set_drives needs 4 velocities and 4 torque fractions, got {velocities!r}, {torque_fractions!r}")
-        for index in range(4):
-            fraction = float(torque_fractions[index])
+        state, limit = self._state, self._speed_limit
+        drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
+        for index in 0, 1, 2, 3:
+            fraction = torque_fractions[index]
             if fraction != fraction:  # NaN: off
-                state.drive_on[index] = False
-                state.drive_velocity[index] = 0.0
-                state.drive_fraction[index] = 0.0
+                drive_on[index] = False
+                drive_velocity[index] = drive_fraction[index] = 0.0
                 continue
-            velocity = float(velocities[index])
-            if not (0.0 <= fraction <= 1.0) or not math.isfinite(velocity):
+            velocity = velocities[index]
+            # (velocity - velocity) is NaN for an infinite or NaN velocity
+            if not (0.0 <= fraction <= 1.0) or velocity - velocity != 0.0:
                 raise PlantError(f"motor {index + 1}: velocity {velocity!r} must be finite and torque fraction {fraction!r} in [0, 1]")
-            state.drive_velocity[index] = min(max(velocity, -limit), limit)
-            state.drive_fraction[index] = fraction
-            state.drive_on[index] = True
+            drive_velocity[index] = limit if velocity > limit else (-limit if velocity < -limit else float(velocity))
+            drive_fraction[index] = float(fraction)
+            drive_on[index] = True
 
     # ---------------------------------------------------------------- stepping
     def step(self) -> None:
         """Advance one physics step of `dt` seconds."""
         self._command_joints()
-        # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain so
-        # the worm holds its position exactly (a velocity-only lock drifts with PyBullet's solver).
-        p.setJointMotorControlArray(
-            self.hand_id, self.joint_indices, p.POSITION_CONTROL, targetPositions=self._hold_positions,
-            targetVelocities=self._targets, forces=self._forces, positionGains=self._position_gains,
-            velocityGains=self._velocity_gains, physicsClientId=self._client,
-        )
+        state = self._state
+        command = (state.target_positions, state.target_velocities, state.forces, state.position_gains)
+        if command != self._sent_command:
+            # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain
+            # so the worm holds its position (a velocity-only lock drifts with PyBullet's solver).
+            p.setJointMotorControlArray(
+                self.hand_id, self.joint_indices, p.POSITION_CONTROL, targetPositions=command[0],
+                targetVelocities=command[1], forces=command[2], positionGains=command[3],
+                velocityGains=self._velocity_gains, physicsClientId=self._client,
+            )
+            self._sent_command = tuple(list(row) for row in command)
         p.stepSimulation(physicsClientId=self._client)
         self._read_joints()
         self._update_after_step()
 
     def _read_joints(self) -> None:
         state = self._state
-        state.previous_positions[:] = state.positions
-        for k, joint in enumerate(p.getJointStates(self.hand_id, self.joint_indices, physicsClientId=self._client)):
-            state.positions[k] = joint[0]
-            state.velocities[k] = joint[1]
-            state.torques[k] = joint[3]
+        joints = p.getJointStates(self.hand_id, self.joint_indices, physicsClientId=self._client)
+        state.previous_positions = state.positions
+        state.positions = [joint[0] for joint in joints]
+        state.velocities = [joint[1] for joint in joints]
+        state.torques = [joint[3] for joint in joints]
 
-    def _hold(self, joint: int, backdriven: bool = False) -> None:
+    def _hold(self, joint: int, backdriven: bool = False, latch: float = 0.0) -> None:
         """Lock `joint` (worm self-locking) where it is now, or where it was already held.
 
         A joint found back-driven is held where it was before that step: the worm never let it move.
+        A joint newly locked with a `latch` torque (its drive was pushing a load closing) keeps
+        pressing with it (the elastic wind-up of link and cable), at most `lock_elastic_travel` beyond
+        the hold position; it never opens past the hold position.
         """
-        state = self._state
+        state, prm = self._state, self.params
+        hold = state.hold_positions
         if not state.held[joint]:
             state.held[joint] = True
-            state.hold_positions[joint] = state.previous_positions[joint] if backdriven else state.positions[joint]
-        self._targets[joint] = 0.0
-        self._forces[joint] = self.params.worm_lock_torque
-        self._position_gains[joint] = self.params.lock_position_gain
+            position = state.previous_positions[joint] if backdriven else state.positions[joint]
+            # Within the joint's range: a link bouncing past a stop (PyBullet's soft limit) is held at it.
+            low, high = self._joint_low[joint], self._joint_high[joint]
+            hold[joint] = low if position < low else (high if position > high else position)
+            state.latched_torque[joint] = latch
+        latched = state.latched_torque[joint]
+        state.target_velocities[joint] = 0.0
+        state.position_gains[joint] = prm.lock_position_gain
+        # Press unless the joint was pushed back past its hold position or a load larger than the
+        # latched torque pushes it open: then the worm alone holds it.
+        if latched > 0.0 and state.positions[joint] >= hold[joint] and state.torques[joint] <= 1.05 * latched:
+            state.target_positions[joint] = hold[joint] + prm.lock_elastic_travel
+            state.forces[joint] = latched
+        else:
+            state.target_positions[joint] = hold[joint]
+            state.forces[joint] = prm.worm_lock_torque
+
+    def _squeeze(self, f: int, load: float) -> bool:
+        """True if finger f's drive was pushing `load` (N·m, reflected to its joint) closing at its limit."""
+        capacity = self._state.drive_capacity[f]
+        return capacity > 0.0 and load >= self.params.squeeze_latch_fraction * capacity
 
     def _drive(self, joint: int, target: float, force: float) -> None:
-        self._state.held[joint] = False
-        self._targets[joint] = target
-        self._forces[joint] = force
-        self._position_gains[joint] = 0.0
+        state = self._state
+        state.held[joint] = False
+        state.target_velocities[joint] = target
+        state.forces[joint] = force
+        state.position_gains[joint] = 0.0
+
+    def _drive_worm(self, joint: int, target: float, force: float, sign: float) -> None:
+        """Drive a finger joint through its worm: a load cannot make it run faster than `target`.
+
+        A joint at (or above) its target speed whose motor was not pushing at its torque limit
+        may get its next push from a load helping it along, so it is braked at the target speed
+        (`overrun_brake_torque`); a motor found pushing at its limit gets its own torque back.
+        """
+        state = self._state
+        forward = sign * target
+        if (
+            forward > 0.0 and sign * state.velocities[joint] >= forward * self._overrun_speed_fraction
+            and sign * state.torques[joint] < force and self._brake_torque > force
+        ):
+            force = self._brake_torque
+        state.held[joint] = False
+        state.target_velocities[joint] = target
+        state.forces[joint] = force
+        state.position_gains[joint] = 0.0
 
     def _command_joints(self) -> None:
-        """Joint velocity targets and force limits for this step from the drives and the clutch state."""
+        """Joint targets and force limits for this step from the drives and the clutch state."""
         prm, state = self.params, self._state
-        self._hold_positions = state.hold_positions
         q, w, tau = state.positions, state.velocities, state.torques
-        stop = prm.stop_tolerance
-        inner_open, inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
-        outer_open, outer_closed = kin.OUTER_RANGE[0] + stop, kin.OUTER_RANGE[1] - stop
-        for f in range(3):
-            i2, i3 = INNER_INDEX[f], OUTER_INDEX[f]
-            velocity = state.drive_velocity[f]
-            on = state.drive_on[f] and velocity != 0.0 and state.drive_fraction[f] > 0.0
-            sign = 1.0 if velocity > 0.0 else -1.0
+        inner_open, inner_closed = self._inner_open, self._inner_closed
+        outer_open, outer_closed = self._outer_open, self._outer_closed
+        hold, drive = self._hold, self._drive_worm
+        held, latched = state.held, state.latched_torque
+        drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
+        for f, i2, i3 in FINGER_JOINTS:
+            velocity = drive_velocity[f]
+            fraction = drive_fraction[f]
+            on = drive_on[f] and velocity != 0.0 and fraction > 0.0
+            if not on and held[i2] and held[i3] and not latched[i2] and not latched[i3]:
+                # Unpowered, locked, nothing pressing: last step's hold command stands.
+                state.locked[f] = True
+                state.drive_capacity[f] = 0.0
+                continue
+            closing = velocity > 0.0
+            sign = 1.0 if closing else -1.0
             if state.engaged[f]:
-                capacity = state.drive_fraction[f] * self._finger_capacity
+                capacity = fraction * self._finger_capacity
                 # Driving a link into its stop stalls the motor there (PyBullet's limit alone would
                 # let a motor pushing into it drag the other joint).
-                at_stop = (q[i2] >= inner_closed or q[i3] >= outer_closed) if velocity > 0.0 else (q[i2] <= inner_open)
                 backdriven = False
-                if not on or at_stop:
+                if not on or ((q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open):
                     locked = True
                 elif state.locked[f]:
                     # Stay held while the load (reflected to the inner joint) is more than the motor can push.
@@ -380,21 +514,27 @@ class HandPlant:
                     locked = backdriven = sign * (w[i2] + w[i3]) < -prm.backdrive_speed
                 state.locked[f] = locked
                 if locked:
-                    self._hold(i2, backdriven)
-                    self._hold(i3, backdriven)
+                    t2, t3 = tau[i2], tau[i3]
+                    squeeze = not state.held[i2] and self._squeeze(f, t2 + t3 / 3.0)
+                    hold(i2, backdriven, t2 if squeeze and t2 > 0.0 else 0.0)
+                    hold(i3, backdriven, t3 if squeeze and t3 > 0.0 else 0.0)
+                    state.drive_capacity[f] = 0.0
                     continue
+                state.drive_capacity[f] = sign * capacity
                 omega = velocity / INNER_COUNTS_PER_RAD
-                correction = 0.5 * prm.coupling_rate * (q[i2] - 3.0 * q[i3])
+                correction = self._half_coupling_rate * (q[i2] - 3.0 * q[i3])
                 # One motor: inner torque + outer torque / 3 within capacity (last step's loads).
-                floor = 0.05 * capacity
-                self._drive(i2, omega - correction, max(floor, capacity - max(0.0, sign * tau[i3]) / 3.0))
-                self._drive(i3, (omega + correction) / 3.0, 3.0 * max(floor, capacity - max(0.0, sign * tau[i2])))
+                inner_floor, outer_floor = 0.05 * capacity, self._torque_floor_fraction * capacity
+                inner_load, outer_load = sign * tau[i3], sign * tau[i2]
+                inner_force = capacity - inner_load / 3.0 if inner_load > 0.0 else capacity
+                outer_force = capacity - outer_load if outer_load > 0.0 else capacity
+                drive(i2, omega - correction, inner_force if inner_force > inner_floor else inner_floor, sign)
+                drive(i3, (omega + correction) * _THIRD, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign)
             else:
-                capacity = state.drive_fraction[f] * self._outer_capacity
-                self._hold(i2)  # the inner link stays where the clutch let go
-                at_stop = q[i3] >= outer_closed if velocity > 0.0 else q[i3] <= outer_open
+                hold(i2)  # the inner link stays where the clutch let go (its load slipped)
+                capacity = fraction * self._outer_capacity
                 backdriven = False
-                if not on or at_stop:
+                if not on or (q[i3] >= outer_closed if closing else q[i3] <= outer_open):
                     locked = True
                 elif state.locked[f]:
                     locked = sign * tau[i3] >= capacity
@@ -402,9 +542,12 @@ class HandPlant:
                     locked = backdriven = sign * w[i3] < -prm.backdrive_speed
                 state.locked[f] = locked
                 if locked:
-                    self._hold(i3, backdriven)
+                    squeeze = not state.held[i3] and self._squeeze(f, tau[i3])
+                    hold(i3, backdriven, tau[i3] if squeeze else 0.0)
+                    state.drive_capacity[f] = 0.0
                 else:
-                    self._drive(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity)
+                    drive(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
+                    state.drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
         friction = prm.spread_friction_torque
@@ -413,14 +556,15 @@ class HandPlant:
         if not state.drive_on[3]:
             self._drive(s1, 0.0, friction)
             return
-        force = max(friction, state.drive_fraction[3] * self._spread_capacity)
+        force = state.drive_fraction[3] * self._spread_capacity
+        if force < friction:
+            force = friction
         spread = q[s1]
-        low, high = kin.SPREAD_RANGE
-        if (velocity > 0.0 and spread >= high - stop) or (velocity < 0.0 and spread <= low + stop):
+        if (velocity > 0.0 and spread >= self._spread_high_stop) or (velocity < 0.0 and spread <= self._spread_low_stop):
             # Stalled at a stop: hold the stop itself (fighting PyBullet's limit row would drift).
-            state.hold_positions[s1] = high if velocity > 0.0 else low
+            state.hold_positions[s1] = state.target_positions[s1] = self._spread_high if velocity > 0.0 else self._spread_low
             state.held[s1] = True
-            self._targets[s1], self._forces[s1], self._position_gains[s1] = 0.0, force, prm.lock_position_gain
+            state.target_velocities[s1], state.forces[s1], state.position_gains[s1] = 0.0, force, prm.lock_position_gain
         else:
             self._drive(s1, velocity / SPREAD_COUNTS_PER_RAD, force)
 
@@ -429,76 +573,86 @@ class HandPlant:
         prm, state = self.params, self._state
         q, w, tau = state.positions, state.velocities, state.torques
         decay = self._impact_decay
-        heat = prm.electronics_power
-        km = prm.motor_constant
-        stop = prm.stop_tolerance
-        inner_open, inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
-        outer_closed = kin.OUTER_RANGE[1] - stop
-        for f in range(3):
-            i2, i3 = INNER_INDEX[f], OUTER_INDEX[f]
-            velocity = state.drive_velocity[f]
-            fraction = state.drive_fraction[f]
-            on = state.drive_on[f] and velocity != 0.0 and fraction > 0.0
-            sign = 1.0 if velocity > 0.0 else -1.0
+        heat = 0.0
+        inner_open, inner_closed, outer_closed = self._inner_open, self._inner_closed, self._outer_closed
+        impact_gain = prm.rotor_impact_gain
+        drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
+        closing_peaks, opening_peaks, motor_torques = state.closing_peak, state.opening_peak, state.motor_torques
+        for f, i2, i3 in FINGER_JOINTS:
             inner_speed = w[i2]
-            previous_closing, previous_opening = state.closing_peak[f], state.opening_peak[f]
-            state.closing_peak[f] = max(inner_speed, previous_closing * decay, 0.0)
-            state.opening_peak[f] = max(-inner_speed, previous_opening * decay, 0.0)
+            previous_closing, previous_opening = closing_peaks[f], opening_peaks[f]
+            # Decaying peaks of the inner link's closing and opening speeds (rotor impact memory).
+            closing_peak, opening_peak = previous_closing * decay, previous_opening * decay
+            if inner_speed > closing_peak:
+                closing_peak = inner_speed
+            elif -inner_speed > opening_peak:
+                opening_peak = -inner_speed
+            closing_peaks[f], opening_peaks[f] = closing_peak, opening_peak
+            velocity = drive_velocity[f]
+            fraction = drive_fraction[f]
+            if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
+                motor_torques[f] = 0.0
+                continue
             if state.engaged[f]:
                 capacity = fraction * self._finger_capacity
-                if on and capacity > 0.0 and velocity > 0.0 and q[i3] < outer_closed:
+                if velocity > 0.0 and q[i3] < outer_closed:
                     # Closing: the torque the clutch passes to the inner link when something holds that
                     # link back (not while it merely accelerates), the outer link's load excluded.
                     commanded = velocity / INNER_COUNTS_PER_RAD
                     if q[i2] >= inner_closed:
                         clutch = capacity
                     elif state.locked[f] or (inner_speed < 0.5 * commanded and inner_speed <= previous_closing + 0.02 * commanded):
-                        clutch = min(tau[i2], capacity - max(0.0, tau[i3]) / 3.0)
+                        outer_load = tau[i3]
+                        clutch = capacity - outer_load / 3.0 if outer_load > 0.0 else capacity
+                        if tau[i2] < clutch:
+                            clutch = tau[i2]
                     else:
                         clutch = 0.0
                     if clutch > 0.0:
-                        impact = prm.rotor_impact_gain * max(0.0, previous_closing - max(inner_speed, 0.0))
-                        clutch += impact * min(1.0, clutch / capacity)
+                        lost = previous_closing - (inner_speed if inner_speed > 0.0 else 0.0)
+                        if lost > commanded:  # the worm: the link ran no faster than the motor turns
+                            lost = commanded
+                        if lost > 0.0:
+                            clutch += impact_gain * lost * (clutch / capacity if clutch < capacity else 1.0)
                         if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f]:
                             self._break_away(f)
-                elif on and capacity > 0.0 and velocity < 0.0 and q[i2] <= inner_open:
+                elif velocity < 0.0 and q[i2] <= inner_open:
                     # Driven against the open stop: the clutch is tightened with the motor's torque plus
                     # the rotor's impact (§9.3.1; slamming open harder preloads more, manual §8).
-                    impact = prm.rotor_impact_gain * max(0.0, previous_opening - max(-inner_speed, 0.0))
-                    state.preload[f] = max(state.preload[f], capacity + impact)
-            elif on and velocity < 0.0 and q[i3] <= q[i2] / 3.0:
+                    lost = previous_opening - (-inner_speed if inner_speed < 0.0 else 0.0)
+                    if lost > -velocity / INNER_COUNTS_PER_RAD:  # the worm: no faster than the motor turns
+                        lost = -velocity / INNER_COUNTS_PER_RAD
+                    preload = capacity + (impact_gain * lost if lost > 0.0 else 0.0)
+                    if preload > state.preload[f]:
+                        state.preload[f] = preload
+            elif velocity < 0.0 and q[i3] <= q[i2] / 3.0:
                 # Opening: the outer link is back at the engaged relation (M at the breakaway position).
                 state.engaged[f] = True
                 state.locked[f] = False
-            torque = self._finger_motor_torque(f, on, sign, fraction)
-            state.motor_torques[f] = torque
-            heat += (torque / km) ** 2
-        s1 = SPREAD_INDEX[0]
+            limit = fraction * prm.motor_peak_torque
+            if state.locked[f]:
+                torque = limit if velocity > 0.0 else -limit  # stalled against a load the worm holds: full push
+            else:
+                if state.engaged[f]:
+                    torque = (tau[i2] + tau[i3] / 3.0) * self._inner_torque_scale
+                else:
+                    torque = tau[i3] * self._outer_torque_scale
+                torque = limit if torque > limit else (-limit if torque < -limit else torque)
+            motor_torques[f] = torque
+            heat += torque * torque
         if state.drive_on[3]:
             limit = state.drive_fraction[3] * prm.motor_peak_torque
-            torque = min(max(tau[s1] / (SPREAD_GEAR_RATIO * prm.spread_drive_efficiency), -limit), limit)
+            torque = tau[SPREAD_INDEX[0]] * self._spread_torque_scale
+            torque = limit if torque > limit else (-limit if torque < -limit else torque)
+            heat += torque * torque
         else:
             torque = 0.0
         state.motor_torques[3] = torque
-        heat += (torque / km) ** 2
+        km = prm.motor_constant
+        power = prm.electronics_power + heat / (km * km)
         loss = (state.temperature - prm.ambient_temperature) / prm.thermal_resistance
-        state.temperature += self.dt * (heat - loss) / prm.heat_capacity
+        state.temperature += self.dt * (power - loss) / prm.heat_capacity
         state.time += self.dt
-
-    def _finger_motor_torque(self, f: int, on: bool, sign: float, fraction: float) -> float:
-        if not on:
-            return 0.0
-        state, prm = self._state, self.params
-        limit = fraction * prm.motor_peak_torque
-        if state.locked[f]:
-            return sign * limit  # stalled against a load the worm holds: the motor pushes its maximum
-        tau = state.torques
-        if state.engaged[f]:
-            load = tau[INNER_INDEX[f]] + tau[OUTER_INDEX[f]] / 3.0
-            torque = load / (INNER_GEAR_RATIO * prm.finger_drive_efficiency)
-        else:
-            torque = tau[OUTER_INDEX[f]] / (OUTER_ABS_GEAR_RATIO * prm.finger_drive_efficiency)
-        return min(max(torque, -limit), limit)
 
     def _break_away(self, f: int) -> None:
         state = self._state
@@ -514,27 +668,39 @@ class HandPlant:
     # ---------------------------------------------------------------- sensors
     def motor_positions(self) -> np.ndarray:
         """Motor counts (BH8-262 scale); 0 = the joint against its mechanical open stop."""
-        q = self._state.positions
-        return np.array(
-            [
-                (q[1] + q[2]) * OUTER_ABS_COUNTS_PER_RAD,
-                (q[4] + q[5]) * OUTER_ABS_COUNTS_PER_RAD,
-                (q[6] + q[7]) * OUTER_ABS_COUNTS_PER_RAD,
-                q[0] * SPREAD_COUNTS_PER_RAD,
-            ]
-        )
+        return np.array(self.motor_positions_list())
+
+    def motor_positions_list(self) -> list[float]:
+        """`motor_positions` as a plain list (the firmware's per-step path).
+
+        The encoders sit on the motors: a locked finger joint reads where its worm holds it (its
+        link may still flex elastically, or sag within PyBullet's soft hold, without turning the motor).
+        """
+        state = self._state
+        q, hold, held = state.positions, state.hold_positions, state.held
+        scale = OUTER_ABS_COUNTS_PER_RAD
+        return [
+            ((hold[1] if held[1] else q[1]) + (hold[2] if held[2] else q[2])) * scale,
+            ((hold[4] if held[4] else q[4]) + (hold[5] if held[5] else q[5])) * scale,
+            ((hold[6] if held[6] else q[6]) + (hold[7] if held[7] else q[7])) * scale,
+            q[0] * SPREAD_COUNTS_PER_RAD,
+        ]
 
     def motor_velocities(self) -> np.ndarray:
         """Motor velocities, counts per second."""
-        w = self._state.velocities
-        return np.array(
-            [
-                (w[1] + w[2]) * OUTER_ABS_COUNTS_PER_RAD,
-                (w[4] + w[5]) * OUTER_ABS_COUNTS_PER_RAD,
-                (w[6] + w[7]) * OUTER_ABS_COUNTS_PER_RAD,
-                w[0] * SPREAD_COUNTS_PER_RAD,
-            ]
-        )
+        return np.array(self.motor_velocities_list())
+
+    def motor_velocities_list(self) -> list[float]:
+        """`motor_velocities` as a plain list; a locked finger's motor stands still."""
+        state = self._state
+        w, held = state.velocities, state.held
+        scale = OUTER_ABS_COUNTS_PER_RAD
+        return [
+            ((0.0 if held[1] else w[1]) + (0.0 if held[2] else w[2])) * scale,
+            ((0.0 if held[4] else w[4]) + (0.0 if held[5] else w[5])) * scale,
+            ((0.0 if held[6] else w[6]) + (0.0 if held[7] else w[7])) * scale,
+            w[0] * SPREAD_COUNTS_PER_RAD,
+        ]
 
     def motor_torques(self) -> np.ndarray:
         """Motor-shaft torques of the last step, N·m (signed, + closes)."""
@@ -593,7 +759,11 @@ class HandPlant:
         state.engaged = [True] * 3
         state.locked = [True] * 3
         state.breakaway_counts = [None] * 3
+        state.held = [False] * NUM_JOINTS  # locked joints are held where they are now
+        state.latched_torque = [0.0] * NUM_JOINTS
+        state.drive_capacity = [0.0] * 3
         self._read_joints()
+        state.previous_positions[:] = state.positions
 
     # ---------------------------------------------------------------- wrist and world
     def set_wrist_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0), teleport: bool = False) -> None:
@@ -749,6 +919,7 @@ class HandPlant:
             raise PlantError(f"no saved plant state with id {state_id!r}")
         p.restoreState(stateId=state_id, physicsClientId=self._client)
         self._state = self._saved[state_id].copy()
+        self._sent_command = None  # resend the joint motor command of the restored state
         position, orientation = self._state.wrist_target
         p.changeConstraint(
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,

@@ -7,8 +7,9 @@ Barrett's C++ API) opens the device like a USB serial adapter.
 
 Two ways to run simulated time (SPEC.md §6):
 - unpaced (default): after each read from the pty the firmware runs until it waits for input and
-  its output is written back; a command answers as soon as its simulated motion ends. An idle
-  server blocks in poll() with no timeout and uses no CPU.
+  its output is written back; a command answers as soon as its simulated motion ends. Bytes that
+  arrive while it runs are handed over when it is done, so only a ^C sent together with the
+  command can abort it. An idle server blocks in poll() with no timeout and uses no CPU.
 - `--realtime`: simulated time follows the wall clock in slices of `REALTIME_SLICE_S`; bytes are
   fed to the firmware while a motion runs, so ^C (0x03) aborts it with ERR 16384 (§5.5 case 4).
   Idle time between commands costs no simulated time here either (Contract 2), so an idle paced
@@ -20,7 +21,7 @@ device without the server seeing a hang-up and without losing the hand's state.
 from __future__ import annotations
 
 import argparse
-import errno
+import contextlib
 import os
 import select
 import signal
@@ -186,6 +187,10 @@ def open_raw_pty() -> tuple[int, int, str]:
     return leader, follower, path
 
 
+class _Stopped(Exception):
+    """Raised by the signal handler to abandon a firmware run in progress."""
+
+
 class PtyServer:
     """Serves one `Firmware` on a new pty until `stop()`; `device` is the follower's path."""
 
@@ -202,6 +207,7 @@ class PtyServer:
         self._poller.register(self._wake_read, select.POLLIN)
         self._poller.register(self._leader, select.POLLIN)
         self._polling_output = False
+        self._running_firmware = False
         self.link = None
         if link is not None:
             try:
@@ -213,11 +219,21 @@ class PtyServer:
     # -- life cycle ---------------------------------------------------------------------------
 
     def serve_forever(self) -> None:
-        """Serve until `stop()` (from a signal handler or another thread)."""
-        if self.realtime:
-            self._serve_paced()
-        else:
-            self._serve_unpaced()
+        """Serve until `stop()` (from another thread) or `stop_from_signal_handler()`."""
+        try:
+            if self.realtime:
+                self._serve_paced()
+            else:
+                self._serve_unpaced()
+        except _Stopped:
+            pass
+
+    def stop_from_signal_handler(self, *_signal_args) -> None:
+        """Signal handler (main thread): stop, abandoning a firmware run in progress, so a motion
+        that never terminates cannot keep the server from exiting."""
+        self.stop()
+        if self._running_firmware:
+            raise _Stopped()
 
     def stop(self) -> None:
         """Make `serve_forever` return soon; safe from a signal handler."""
@@ -263,7 +279,9 @@ class PtyServer:
             data = self._read_input()
             if data:
                 firmware.write(data)
+                self._running_firmware = True
                 firmware.run_until_idle()
+                self._running_firmware = False
                 self._queue_output(firmware.read())
             self._flush_output()
 
@@ -308,10 +326,6 @@ class PtyServer:
                 chunk = os.read(self._leader, _READ_CHUNK)
             except BlockingIOError:
                 break
-            except OSError as error:
-                if error.errno == errno.EIO:  # no follower open: cannot happen while we hold one
-                    break
-                raise
             if not chunk:
                 break
             chunks.append(chunk)
@@ -364,6 +378,21 @@ def _display_available() -> bool:
     return True
 
 
+@contextlib.contextmanager
+def _native_stdout_to_stderr():
+    """Send what native code prints to stdout (PyBullet's GUI start-up chatter) to stderr, so the
+    device path stays the first line of stdout."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.gui and not _display_available():
         print("bh8 serve: --gui needs a display and DISPLAY is not set; run without --gui "
@@ -371,12 +400,23 @@ def run(args: argparse.Namespace) -> int:
         return 2
     state_dir = args.state if args.state is not None else default_state_dir()
     try:
-        firmware = build_firmware(state_dir, args.firmware, args.seed, tuple(args.objects), args.gui)
+        with _native_stdout_to_stderr():
+            firmware = build_firmware(state_dir, args.firmware, args.seed, tuple(args.objects), args.gui)
     except ValueError as error:
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 2
+    except OSError as error:
+        print(f"bh8 serve: cannot use the store {state_dir}: {error}", file=sys.stderr)
+        return 1
+    return serve(firmware, realtime=args.realtime, link=args.link, store=state_dir)
+
+
+def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = None, store=None) -> int:
+    """Serve `firmware` on a new pty until SIGINT, SIGTERM or SIGHUP: print the device path as the
+    first line of stdout, then shut the firmware down (persisting its counters) and close its
+    plant. Returns the exit code: 0, or 1 when the pty or the link cannot be made."""
     try:
-        server = PtyServer(firmware, realtime=args.realtime, link=args.link)
+        server = PtyServer(firmware, realtime=realtime, link=link)
     except OSError as error:
         shutdown_firmware(firmware)
         print(f"bh8 serve: {error}", file=sys.stderr)
@@ -384,19 +424,20 @@ def run(args: argparse.Namespace) -> int:
 
     previous = {}
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        previous[signum] = signal.signal(signum, lambda *_: server.stop())
+        previous[signum] = signal.signal(signum, server.stop_from_signal_handler)
     try:
         print(server.device, flush=True)
-        mode = "paced to the wall clock" if args.realtime else "unpaced"
-        link = f" (link {server.link})" if server.link else ""
-        print(f"bh8 serve: firmware {args.firmware} on {server.device}{link}, {mode}, "
-              f"store {state_dir}; ^C to stop", file=sys.stderr, flush=True)
+        mode = "paced to the wall clock" if realtime else "unpaced"
+        linked = f" (link {server.link})" if server.link else ""
+        stored = f", store {store}" if store is not None else ""
+        print(f"bh8 serve: firmware {firmware.profile} on {server.device}{linked}, {mode}{stored}; ^C to stop",
+              file=sys.stderr, flush=True)
         server.serve_forever()
     finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         try:
             shutdown_firmware(firmware)
         finally:
             server.close()
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
     return 0

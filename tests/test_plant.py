@@ -310,3 +310,48 @@ def test_wrist_follows_the_flange_target(plant):
     position, orientation = plant.wrist_pose()
     assert np.allclose(position, (0.05, 0.0, 0.35), atol=0.002)
     assert abs(abs(orientation[3]) - 1.0) < 1e-3
+
+
+def test_set_parameters_changes_behaviour_and_restore_state_still_works(plant):
+    """Contract 1 / SPEC §8: PlantParameters are the randomisation knobs; set_parameters applies them to a
+    live plant (motor speed, strain offsets, friction) and save/restore still repeats a trajectory."""
+    from dataclasses import replace as with_fields
+
+    state = plant.save_state()
+
+    def close():
+        plant.set_drives([MCV_100, MCV_100, MCV_100, 0.0], [1.0, 1.0, 1.0, np.nan])
+        run(plant, 0.3)
+        return plant.motor_positions()[:3].copy(), plant.strain_gauges().copy()
+
+    default_positions, _ = close()
+    slow = with_fields(plant.params, motor_no_load_speed=5_000.0, strain_offsets=(101, 102, 103), finger_friction=0.3)
+    plant.restore_state(state)
+    plant.set_parameters(slow)
+    assert plant.strain_offsets == (101, 102, 103)
+    assert p.getDynamicsInfo(plant.hand_id, plant.joint_indices[2], physicsClientId=plant.client)[1] == pytest.approx(0.3)
+    slow_positions, slow_gauges = close()
+    assert np.all(slow_positions < 0.3 * 5_000.0 + 20.0) and np.all(default_positions > 0.25 * MCV_100)
+    assert abs(int(slow_gauges[0]) - 101) <= 3
+    plant.restore_state(state)
+    first = close()
+    plant.restore_state(state)
+    second = close()
+    assert np.array_equal(first[0], second[0]) and np.array_equal(first[1], second[1])
+    with pytest.raises(PlantError, match="time_step"):
+        plant.set_parameters(with_fields(slow, time_step=0.001))
+    with pytest.raises(PlantError, match="motor_peak_torque"):
+        plant.set_parameters(with_fields(slow, motor_peak_torque=float("nan")))
+
+
+def test_locked_finger_reads_its_hold_position(plant):
+    """SPEC §1: an unpowered finger's worm holds it; the motor encoder of a locked finger does not move."""
+    plant.set_drive(3, MCV_100, 1.0)
+    run(plant, 0.3)
+    plant.set_drive_off(3)
+    plant.step()
+    held = plant.motor_positions()[2]
+    readings = []
+    run(plant, 0.5, lambda: readings.append(plant.motor_positions()[2]))
+    assert held > 5_000.0 and np.all(np.array(readings) == held)
+    assert plant.motor_velocities()[2] == 0.0

@@ -9,6 +9,7 @@ no CPU), SPEC.md §2 (framing, ^C → ERR 16384), §5 (RealTime blocks are count
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import stat
 import subprocess
@@ -153,6 +154,50 @@ def test_sigterm_and_sigint_save_and_exit_zero(tmp_path):
         assert _stop(link, signal.SIGINT) == 0
 
 
+_RUNAWAY_SERVER = """
+import sys
+from bh8_gym import virtual_serial
+
+class Plant:
+    def close(self):
+        pass
+
+class RunawayFirmware:
+    \"\"\"Contract 2's surface, but every command runs forever (a motion that never terminates).\"\"\"
+    profile, plant, idle, in_loop, time = "4.3", Plant(), True, False, 0.0
+    def write(self, data):
+        pass
+    def read(self):
+        return b""
+    def run_until_idle(self):
+        while True:
+            pass
+    def shutdown(self):
+        print("shut down", file=sys.stderr, flush=True)
+
+sys.exit(virtual_serial.serve(RunawayFirmware()))
+"""
+
+
+def test_sigterm_ends_a_server_stuck_in_a_runaway_command(tmp_path):
+    """A command whose simulated motion never ends must not keep an unpaced server from exiting:
+    SIGTERM abandons the run, shuts the firmware down and exits 0."""
+    process = subprocess.Popen([sys.executable, "-c", _RUNAWAY_SERVER], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        device = process.stdout.readline().strip()
+        with serial.Serial(device, 9600, timeout=0.05) as port:
+            port.write(b"GC\r")
+            time.sleep(0.3)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+        assert "shut down" in process.stderr.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
 def test_firmware_profile_option(tmp_path):
     """SPEC.md §7: --firmware 4.4 serves the 4.4 profile (VERS reports 4.4)."""
     link = _serve(tmp_path / "store", "--firmware", "4.4")
@@ -172,6 +217,25 @@ def test_gui_without_display_is_a_clear_error(tmp_path):
     assert process.returncode == 2
     assert process.stdout == ""
     assert "DISPLAY" in process.stderr
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="needs xvfb-run (Debian package xvfb)")
+def test_gui_under_a_virtual_display_keeps_the_device_first(tmp_path):
+    """--gui with a display: PyBullet's GUI start-up chatter must not push the device path off
+    the first stdout line, and the hand answers."""
+    process = subprocess.Popen(
+        ["xvfb-run", "-a", sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(tmp_path / "store"), "--gui"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True,
+    )
+    try:
+        device = process.stdout.readline().strip()
+        assert device.startswith("/dev/"), device
+        with serial.Serial(device, 9600, timeout=5) as port:
+            port.write(b"\r")
+            assert port.read(5) == b"\n\r=> "
+    finally:
+        os.killpg(process.pid, signal.SIGTERM)
+        process.wait(timeout=20)
 
 
 def test_default_state_dir_follows_xdg(monkeypatch, tmp_path):
@@ -234,10 +298,10 @@ def test_realtime_paces_motion_and_ctrl_c_aborts(tmp_path):
 def test_object_option_places_an_object_the_fingers_stall_on(tmp_path):
     """--object puts an object in the palm: a GC stalls on it (§5.5 termination case 1), so the
     fingers stop well short of CT."""
-    link = _serve(tmp_path / "store", "--object", "sphere:0.035")
+    link = _serve(tmp_path / "store", "--object", "box:0.08x0.05x0.08")
     try:
         _initialise(link)
-        assert link.lines("GC", timeout=30) == []
+        assert link.lines("GC", timeout=15) == []
         close_target = [int(v) for v in link.lines("GFGET CT")[0].split()]
         positions = [int(v) for v in link.lines("GFGET P")[0].split()]
         assert all(p < ct - 2000 for p, ct in zip(positions, close_target)), (positions, close_target)

@@ -5,8 +5,8 @@ it is: the constants the manual gives vary from unit to unit and with temperatur
 estimated (SPEC.md §8 open points) get wider ranges, because a policy must not depend on our guess.
 
 Object mass and friction are drawn with the object (objects.py); placement errors in scenes.py.
-Not randomised: the RealTime processing time per cycle (firmware.REALTIME_PROCESSING_S is a
-module constant shared by every firmware in the process; see the envs report).
+The RealTime processing time per cycle (the cycle latency, SPEC.md §6 and §8) is a per-firmware
+setting drawn by `sample_processing_time` and applied with `PlantRandomizer(plant, firmware)`.
 """
 from __future__ import annotations
 
@@ -52,6 +52,9 @@ class RandomizationRanges:
     finger_friction: tuple[float, float] = (0.5, 1.1)
     palm_friction: tuple[float, float] = (0.4, 0.8)
     table_friction: tuple[float, float] = (0.3, 0.8)
+    # Seconds of firmware processing per RealTime cycle (absolute): our 1 ms is an estimate (SPEC.md §8),
+    # so a policy must tolerate a 68HC811 somewhat faster or slower than we guessed.
+    processing_time: tuple[float, float] = (0.7e-3, 1.5e-3)
 
     def __post_init__(self):
         for item in fields(self):
@@ -73,40 +76,25 @@ def sample_plant_parameters(base, rng: np.random.Generator, ranges: Randomizatio
     return replace(base, **values)
 
 
+def sample_processing_time(rng: np.random.Generator, ranges: RandomizationRanges = RandomizationRanges()) -> float:
+    """Firmware processing seconds per RealTime cycle, drawn from `rng` (one draw; call it after
+    `sample_plant_parameters` so the plant draws stay as they were)."""
+    return float(rng.uniform(*ranges.processing_time))
+
+
 class PlantRandomizer:
-    """Applies sampled PlantParameters to a live HandPlant between episodes (after a state restore).
+    """Applies sampled PlantParameters to a live HandPlant between episodes (after a state restore),
+    and, given the firmware, a sampled RealTime processing time."""
 
-    HandPlant reads most parameters live from `plant.params`; link frictions and masses live in
-    PyBullet, the strain offsets in `plant.strain_offsets`, and the drive capacities are derived
-    once at construction, so those are re-derived here with the plant's own formulas (plant.py
-    `_build_world`). A `HandPlant.set_parameters` would make this unnecessary (see the report).
-    """
-
-    def __init__(self, plant):
-        import pybullet
-
-        from bh8_gym import plant as plant_module
-
-        self._p = pybullet
-        self._module = plant_module
+    def __init__(self, plant, firmware=None):
         self.plant = plant
-        client, hand = plant.client, plant.hand_id
-        self._links = [-1] + list(range(pybullet.getNumJoints(hand, physicsClientId=client)))
-        scale = plant.params.link_mass_scale
-        self._unit_masses = [pybullet.getDynamicsInfo(hand, link, physicsClientId=client)[0] / scale for link in self._links]
+        self.firmware = firmware
 
-    def apply(self, params) -> None:
-        p, plant, m = self._p, self.plant, self._module
-        params.validate()
-        client, hand = plant.client, plant.hand_id
-        plant.params = params
-        plant.strain_offsets = tuple(params.strain_offsets)
-        plant._finger_capacity = params.motor_peak_torque * m.INNER_GEAR_RATIO * params.finger_drive_efficiency
-        plant._outer_capacity = params.motor_peak_torque * m.OUTER_ABS_GEAR_RATIO * params.finger_drive_efficiency
-        plant._spread_capacity = params.motor_peak_torque * m.SPREAD_GEAR_RATIO * params.spread_drive_efficiency
-        for link, unit_mass in zip(self._links, self._unit_masses):
-            friction = params.palm_friction if link == -1 else params.finger_friction
-            p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * params.link_mass_scale,
-                             physicsClientId=client)
-        if plant.table_id is not None:
-            p.changeDynamics(plant.table_id, -1, lateralFriction=params.table_friction, physicsClientId=client)
+    def apply(self, params, processing_time: float | None = None) -> None:
+        self.plant.set_parameters(params)
+        if processing_time is not None:
+            if self.firmware is None:
+                raise ValueError(f"processing_time {processing_time!r} needs PlantRandomizer(plant, firmware)")
+            if not 0.0 <= processing_time < 1.0:
+                raise ValueError(f"processing_time must be in [0, 1) seconds, got {processing_time!r}")
+            self.firmware.processing_time = float(processing_time)

@@ -6,8 +6,8 @@ URL: ``bh8sim://[?option=value[&option=value...]]`` with options
 - ``firmware=4.3|4.4``: firmware profile (default 4.3, SPEC.md §7);
 - ``state=DIR``: the non-volatile store (default: a temporary directory made on open and removed
   on close, so every open without ``state`` is a factory-fresh hand and tests stay independent);
-- ``object=SPEC`` (repeatable): an object placed as by ``bh8 serve --object SPEC`` (URL-encode
-  ``;`` as ``%3B``).
+- ``object=SPEC`` (repeatable): an object placed as by ``bh8 serve --object SPEC`` (percent-encode
+  any ``&``, ``#`` or ``%`` in it).
 
 Time: the simulated clock advances only while the host waits for the hand, so replies come as
 fast as the physics runs and are reproducible for a given sequence of calls. ``read(n)`` runs the
@@ -102,7 +102,7 @@ class Serial(SerialBase):
             state = self._temporary_state
         try:
             self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"])
-        except ValueError as error:
+        except (ValueError, OSError) as error:
             self._remove_temporary_state()
             raise SerialException(f"cannot open {self._port!r}: {error}") from error
         except BaseException:

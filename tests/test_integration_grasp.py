@@ -1,0 +1,205 @@
+"""The plant driven through the real firmware: squeeze kept by locked worms, no gravity overrun,
+TorqueSwitch breakaway with GC, locked fingers that do not drift, per-instance processing time.
+
+Sources: manual §9.3.1 (TorqueSwitch, worm drives), App. B FAQ A1 (motor current removed, the
+grasp stays), §5.2.1 (C, TC, HI, GO), §5.5 (termination, HOLD); SPEC.md §1, §4, §6, §8.
+"""
+from __future__ import annotations
+
+from math import radians
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
+from bh8_gym.plant import HandPlant
+
+PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
+PALM_UP = (0.0, 0.0, 0.0, 1.0)
+MCV_20_COUNTS_PER_S = 20 / 16 / 256e-6  # SPEC §4: 1/16 count per 256 µs sample = 4,883 counts/s
+
+
+def command(fw: Firmware, line: str) -> bytes:
+    reply = fw.transact(line.encode() + b"\r")
+    assert reply.endswith(b"=> ") and b"ERR" not in reply, reply
+    return reply
+
+
+def run_sampling(fw: Firmware, line: str, sample):
+    """Run a motion command 2 ms at a time, calling sample() after each step; returns the samples."""
+    fw.write(line.encode() + b"\r")
+    samples = []
+    while not fw.idle:
+        fw.run_for(fw.plant.dt)
+        samples.append(sample())
+    fw.read()
+    return samples
+
+
+@pytest.fixture
+def grasp_fw(tmp_path):
+    plant = HandPlant(seed=0)
+    plant.set_wrist_pose((0.0, 0.0, 0.225), PALM_DOWN, teleport=True)
+    cylinder = plant.add_object("cylinder", (0.03, 0.13), position=(0.0, 0.0, 0.065), mass=0.15)
+    fw = Firmware(plant=plant, store_dir=tmp_path, seed=0)
+    command(fw, "HI")
+    yield fw, cylinder
+    fw.shutdown()
+    plant.close()
+
+
+def test_locked_fingers_keep_their_squeeze_and_the_grasp_survives_a_lift(grasp_fw):
+    """§9.3.1 / FAQ A1: with HOLD 0 a C that stalls on an object switches the motors off, the worms
+    lock and the grasp stays: SG stays near its stalled value and a 150 g cylinder is lifted."""
+    fw, cylinder = grasp_fw
+    plant = fw.plant
+    command(fw, "GFSET HOLD 0")
+    samples = run_sampling(fw, "GC", lambda: (plant.strain_gauges()[:3].astype(int), list(plant._state.drive_on[:3])))
+    offsets = np.array(plant.strain_offsets)
+    # Each finger's load on its gauge while its own motor stalled on the cylinder (its last 20 ms driving;
+    # the median, as a stalled drive and its worm hand the load back and forth from step to step).
+    stalled = np.array([np.median([gauges[f] for gauges, on in samples if on[f]][-10:]) for f in range(3)]) - offsets
+    assert np.all(stalled > 15), "the fingers must squeeze the cylinder"
+    assert fw.transact(b"GFGET S\r").split(b"\n\r")[1] == b"0 0 0"
+    for _ in range(5):  # the motors are off; the worms keep the squeeze (the cylinder settles between them)
+        fw.run_for(0.1)
+        load = plant.strain_gauges()[:3] - offsets
+        assert np.all(load > 15) and load.sum() >= 0.7 * stalled.sum()  # loads shift between fingers, none is lost
+    start = plant.object_pose(cylinder)[0][2]
+    for k in range(1, 401):  # lift the wrist 8 cm in 0.8 s
+        plant.set_wrist_pose((0.0, 0.0, 0.225 + 0.0002 * k), PALM_DOWN)
+        fw.run_for(plant.dt)
+    fw.run_for(0.3)
+    assert plant.object_pose(cylinder)[0][2] - start > 0.07
+
+
+def test_gravity_cannot_overrun_the_worm(tmp_path):
+    """SPEC §1 (worm drives are self-locking) and §4 (TC at MCV runs at MCV/16 counts per sample):
+    palm down, where gravity helps the fingers close, TC at MCV 20 runs at about 4,883 counts/s;
+    palm up (gravity hinders) it never runs faster than that."""
+    speeds = {}
+    for name, orientation in (("palm_down", PALM_DOWN), ("palm_up", PALM_UP)):
+        plant = HandPlant(seed=0)
+        plant.set_wrist_pose((0.0, 0.0, 0.4), orientation, teleport=True)
+        fw = Firmware(plant=plant, store_dir=tmp_path / name, seed=0)
+        try:
+            command(fw, "HI")
+            command(fw, "GFSET MCV 20")
+            fw.write(b"GTC\r")
+            fw.run_for(0.3)  # up to speed
+            start = plant.motor_positions()[:3]
+            for _ in range(10):  # no 0.1 s window faster than the motor turns
+                window_start = plant.motor_positions()[:3]
+                fw.run_for(0.1)
+                assert np.all(plant.motor_positions()[:3] - window_start < 0.115 * MCV_20_COUNTS_PER_S)
+            speeds[name] = plant.motor_positions()[:3] - start
+        finally:
+            fw.shutdown()
+            plant.close()
+    assert speeds["palm_down"] == pytest.approx([MCV_20_COUNTS_PER_S] * 3, rel=0.15)
+    assert np.all(speeds["palm_up"] < 1.15 * MCV_20_COUNTS_PER_S)
+
+
+def inner_link_bars(plant: HandPlant, inner_degrees: float) -> None:
+    """Fixed bars across the inner links' closing side where the inner links reach `inner_degrees`
+    (one bar for F1 and F2, one for F3), clear of the outer links' path."""
+    saved = plant.joint_angles()
+    angles = saved.copy()
+    for inner, outer in ((1, 2), (4, 5), (6, 7)):
+        angles[inner], angles[outer] = radians(inner_degrees), radians(inner_degrees / 3)
+    plant.set_joint_angles(angles)
+    poses = {}
+    for finger in (1, 2, 3):
+        link = plant._link_index_by_name[f"f{finger}_inner"]
+        state = p.getLinkState(plant.hand_id, link, computeForwardKinematics=True, physicsClientId=plant.client)
+        poses[finger] = p.multiplyTransforms(state[4], state[5], (0.04, 0.0185, 0.0), (0, 0, 0, 1))
+    plant.set_joint_angles(saved)
+    middle = (np.array(poses[1][0]) + np.array(poses[2][0])) / 2.0
+    plant.add_object("box", (0.012, 0.012, 0.08), position=middle, orientation=poses[1][1], fixed=True)
+    plant.add_object("box", (0.012, 0.012, 0.04), position=poses[3][0], orientation=poses[3][1], fixed=True)
+
+
+@pytest.fixture
+def bars_fw(tmp_path):
+    plant = HandPlant(seed=0)
+    inner_link_bars(plant, 60.0)
+    fw = Firmware(plant=plant, store_dir=tmp_path, seed=0)
+    command(fw, "HI")
+    yield fw
+    fw.shutdown()
+    plant.close()
+
+
+def test_gc_on_inner_link_bars_breaks_away_and_go_hi_reengage_and_preload(bars_fw):
+    """§9.3.1 / SPEC §1: after HI, GC at the default MCV against bars under the inner links breaks the
+    clutches away near the bar; the inner links stay while the outer links close to 48°; GO
+    re-engages (§9.3.1 opening) and a new HI preloads the clutches again (§8 troubleshooting)."""
+    fw = bars_fw
+    plant = fw.plant
+    assert all(plant.clutch_preload(f) > 2.0 for f in (1, 2, 3))
+    track = run_sampling(fw, "GC", lambda: (np.degrees(plant.joint_angles()[[1, 4, 6]]), plant.clutch_engaged(3)))
+    angles = np.degrees(plant.joint_angles())
+    for finger, (inner, outer) in zip((1, 2, 3), ((1, 2), (4, 5), (6, 7))):
+        assert not plant.clutch_engaged(finger)
+        at_breakaway = plant.breakaway_position(finger) / 125.0
+        assert 55.0 < at_breakaway < 68.0
+        assert abs(angles[inner] - at_breakaway) < 2.0
+        assert angles[outer] == pytest.approx(48.0, abs=1.0)
+    later = np.array([inner for inner, engaged in track if not engaged])  # after F3's breakaway
+    assert np.all(later.max(axis=0) - later.min(axis=0) < 2.5)
+    command(fw, "GO")
+    assert all(plant.clutch_engaged(f) for f in (1, 2, 3))
+    command(fw, "HI")
+    assert all(plant.clutch_preload(f) > 2.0 for f in (1, 2, 3))
+
+
+@pytest.mark.parametrize("mcv", [20, 40])
+def test_slow_gc_on_inner_link_bars_does_not_break_away(bars_fw, mcv):
+    """Manual §8 troubleshooting ("close velocity too slow") / SPEC §8: a slow close stalls on the bars
+    with the clutches engaged (3:1 coupling kept)."""
+    fw = bars_fw
+    command(fw, f"GFSET MCV {mcv}")
+    command(fw, "GC")
+    angles = np.degrees(fw.plant.joint_angles())
+    for finger, (inner, outer) in zip((1, 2, 3), ((1, 2), (4, 5), (6, 7))):
+        assert fw.plant.clutch_engaged(finger)
+        assert 55.0 < angles[inner] < 68.0
+        assert angles[outer] == pytest.approx(angles[inner] / 3.0, abs=1.5)
+
+
+def test_locked_fingers_do_not_drift_in_loop(tmp_path):
+    """§6.2.3 / SPEC §1: after FGET P, LOOP cycles with LCV 0 report zero delta position: an unpowered
+    (locked) worm drive holds exactly; FGET P afterwards reads the same counts."""
+    fw = Firmware(store_dir=tmp_path, seed=0)
+    try:
+        command(fw, "HI")
+        command(fw, "GFSET LCV 1 LCVC 1 LCPG 0 LFV 0 LFS 0 LFAP 0 LFDP 1 LFDPC 1")
+        before = fw.transact(b"FGET P\r")
+        assert fw.transact(b"GLOOP\r") == b"GLOOP*"
+        layout = fw.loop_layout
+        for _ in range(50):
+            assert layout.decode_feedback(fw.transact(layout.encode_control([0, 0, 0]))) == (0, 0, 0)
+        fw.transact(b"\x03")
+        assert fw.transact(b"FGET P\r") == before
+    finally:
+        fw.shutdown()
+
+
+def test_processing_time_is_a_per_instance_setting(tmp_path):
+    """SPEC §6: a RealTime cycle costs the blocks' bytes at BAUD plus the firmware's processing time,
+    now per Firmware instance (randomised by the environments); bad values are rejected."""
+    times = []
+    for processing in (REALTIME_PROCESSING_S, 3e-3):
+        fw = Firmware(store_dir=tmp_path / str(processing), seed=0, processing_time=processing)
+        try:
+            command(fw, "HI")
+            assert fw.transact(b"GLOOP\r") == b"GLOOP*"
+            start = fw.time
+            fw.transact(b"A")
+            times.append(fw.time - start)
+        finally:
+            fw.shutdown()
+    assert times[1] - times[0] == pytest.approx(2e-3, abs=1e-9)
+    with pytest.raises(ValueError, match="-1"):
+        Firmware(store_dir=tmp_path / "bad", processing_time=-1.0)
