@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -37,14 +36,18 @@ from bh8_gym.agents.policy_file import PolicyFileError, load_policy
 
 EXIT_ACTIONS = ("GT", "T", "none")
 # The host clock the observation's elapsed time uses: wall seconds since the first block (a real
-# hand and arm), or cycles × the env's cycle time (an unpaced simulator, e.g. bh8sim://).
+# hand and arm), or the env's own clock summed cycle by cycle with the nominal processing time
+# (`BH8LoopEnv.next_elapsed`; an unpaced simulator: bit-identical to the env's without latency
+# randomisation, e.g. `bh8 serve --env ID --seed N --env-kwargs '{"randomize": false}'`).
 CLOCKS = ("wall", "cycles")
 # Default safety limits. Strain: 8-bit gauge, no-load 100-140 (SPEC.md §1); 230 leaves headroom
 # below saturation (255) for a firm grasp. Temperature: the hand runs at 40-60 °C (§2); stop at 65.
 DEFAULT_MAX_STRAIN = 230
 DEFAULT_MAX_TEMPERATURE_C = 65.0
-# LCV byte limit (|LCV| ≤ this); 127 is the full signed-byte range, i.e. no clamp.
+# LCV byte limit (|LCV| ≤ this); NO_VELOCITY_CLAMP (127) is the full signed-byte range -128..127,
+# i.e. no clamp, so deploy sends exactly the bytes the env's ContinuousActions mapping gives.
 DEFAULT_MAX_VELOCITY_BYTE = 100
+NO_VELOCITY_CLAMP = 127
 
 
 class DeployError(RuntimeError):
@@ -92,12 +95,12 @@ class Deployment:
         is_velocity = np.array([name == "LCV" for _, name in fields])
         self._center = (self._low + self._high) / 2.0
         self._half = (self._high - self._low) / 2.0
-        self._clamp_low = np.where(is_velocity, np.maximum(self._low, -max_velocity), self._low)
+        floor = -max_velocity if max_velocity < NO_VELOCITY_CLAMP else self._low
+        self._clamp_low = np.where(is_velocity, np.maximum(self._low, floor), self._low)
         self._clamp_high = np.where(is_velocity, np.minimum(self._high, max_velocity), self._high)
         # LCV 0 and LCPG 0: no motion and no torque (SPEC.md §5); the block sent before leaving LOOP
         self._stop_values = [0] * len(fields)
         self._action = np.zeros(len(fields))
-        self.cycle_seconds = float(self.base.cycle_seconds)
         self.clock = clock
         self.layout = None
         self.cycles = 0
@@ -143,12 +146,16 @@ class Deployment:
             raise ValueError(f"cycles must be positive, got {cycles!r}")
         reason = "done"
         previous = np.zeros(len(self._stop_values), dtype=np.int64)
+        base, hand, on_cycles = self.base, self.hand, self.clock == "cycles"
+        processing_time = base.nominal_processing_time
         try:
-            # Like the env's reset: an "A" block (no control data) gives the first observation and
-            # starts the host's clock.
-            feedback = self._exchange((), header=b"A")
+            # Like the env's reset: an "A" block (no control data) starts the host's clock and
+            # gives the first observation, at the clock's reading after that block.
             start = time.monotonic()
-            observation = self.base.observation_from_feedback(feedback.values, previous, 0.0)
+            feedback = self._exchange((), header=b"A")
+            elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
+                       else time.monotonic() - start)
+            observation = base.observation_from_feedback(feedback.values, previous, elapsed)
             while self.cycles <= cycles:  # the "A" block was cycle 0
                 self._check_limits(feedback)
                 unit, _ = self.policy.predict(observation, deterministic=True)
@@ -156,8 +163,9 @@ class Deployment:
                         self._clamp_low, self._clamp_high, out=self._action)
                 previous[:] = self._action
                 feedback = self._exchange(previous.tolist())
-                elapsed = (self.cycles - 1) * self.cycle_seconds if self.clock == "cycles" else time.monotonic() - start
-                observation = self.base.observation_from_feedback(feedback.values, previous, elapsed)
+                elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
+                           else time.monotonic() - start)
+                observation = base.observation_from_feedback(feedback.values, previous, elapsed)
             self._check_limits(feedback)
         except SafetyStop as stop:
             reason = f"safety stop: {stop}"
@@ -185,13 +193,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", required=True, help="serial port or pyserial URL (e.g. /dev/ttyUSB0, bh8sim://)")
     parser.add_argument("--policy", required=True, type=Path, help="policy file (.npz export or SB3 .zip)")
     parser.add_argument("--baud", type=int, default=9600, help="the hand's current rate (default 9600)")
-    parser.add_argument("--cycles", type=int, default=None, help="cycles to run (default: one env episode)")
+    parser.add_argument("--cycles", type=int, default=None,
+                        help="policy cycles after the first 'A' block (default: one env episode at the nominal latency)")
     parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"), help="JSONL block log")
-    parser.add_argument("--max-velocity", type=int, default=DEFAULT_MAX_VELOCITY_BYTE, help="|LCV| limit (bytes)")
+    parser.add_argument("--max-velocity", type=int, default=DEFAULT_MAX_VELOCITY_BYTE, help="|LCV| limit (bytes; 127: no clamp, -128..127)")
     parser.add_argument("--max-strain", type=int, default=DEFAULT_MAX_STRAIN, help="finger strain limit (0-255)")
     parser.add_argument("--max-temperature", type=float, default=DEFAULT_MAX_TEMPERATURE_C, help="degrees C")
     parser.add_argument("--clock", choices=CLOCKS, default="wall",
-                        help="elapsed time in the observation: wall clock (real hand) or cycles x cycle time")
+                        help="elapsed time in the observation: wall clock (real hand) or the env's clock "
+                             "summed per cycle at the nominal latency (unpaced simulator, e.g. bh8 serve --env)")
     parser.add_argument("--on-exit", choices=EXIT_ACTIONS, default="GT",
                         help="after leaving LOOP: GT fingers off (default), T all motors off, none")
 
@@ -217,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         # default: one episode of the env's simulated clock
-        cycles = args.cycles or math.ceil(env.unwrapped.episode_seconds / env.unwrapped.cycle_seconds)
+        cycles = args.cycles or env.unwrapped.nominal_episode_steps()
         with args.log.open("w") as log_file, BarrettHand(args.port, baudrate=args.baud) as hand:
             deployment = Deployment(hand, policy, env, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,

@@ -205,6 +205,9 @@ class Firmware:
         self.version = VERSIONS[profile]
         self.store = NVStore(store_dir, profile=profile, seed=seed)
         self.cycle_hook = None
+        #: Called as `loop_entry_hook(firmware, layout)` after a LOOP command has queued its "*"
+        #: (`bh8 serve --env` starts the env's episode there); may call `restore(..., keep_io=True)`.
+        self.loop_entry_hook = None
         self._motor_table = motor_parameters(profile)
         self._global_table = global_parameters(profile)
         self._dt = float(plant.dt)
@@ -290,16 +293,22 @@ class Firmware:
         state = {k: v for k, v in self.__dict__.items() if k not in _NOT_SNAPSHOT and k not in _SHARED_STATE}
         return FirmwareSnapshot(self.plant.save_state(), copy.deepcopy(state), shared)
 
-    def restore(self, snapshot: FirmwareSnapshot) -> None:
-        """Return firmware and plant to `snapshot`; later bytes equal those of the original run."""
+    def restore(self, snapshot: FirmwareSnapshot, keep_io: bool = False) -> None:
+        """Return firmware and plant to `snapshot`; later bytes equal those of the original run.
+
+        `keep_io=True` keeps the serial bytes not yet processed (input) and not yet read (output),
+        as a live serial line would (used from `loop_entry_hook`)."""
         if not isinstance(snapshot, FirmwareSnapshot):
             raise TypeError(f"restore() needs a FirmwareSnapshot, got {type(snapshot).__name__}")
+        pending = (self._input, self._output) if keep_io else None
         self.plant.restore_state(snapshot.plant_state)
         self.__dict__.update(copy.deepcopy(snapshot.state))
         self.__dict__.update(snapshot.shared)
         self._task = None
         self._channel_list = [self._channels[m] for m in MOTORS]
         self._refresh_plant_state()
+        if pending is not None:
+            self._input, self._output = pending
 
     # ------------------------------------------------------------------ time and physics
 
@@ -934,6 +943,8 @@ class Firmware:
             self._status[m] = 0
         self._loop_velocity_scale = {m: coefficient(values[m]["LCVC"]) / VELOCITY_SCALE for m in layout.motors}
         self._output += b"*"
+        if self.loop_entry_hook is not None:
+            self.loop_entry_hook(self, layout)
 
     def _leave_loop(self) -> None:
         layout = self._loop_layout
@@ -1055,7 +1066,7 @@ class Firmware:
 _HANDLER_NAMES = {"?": "HELP", "A?": "HELP_ALL"}
 # Attributes a snapshot does not copy: the plant, the store, hooks, the running task and constants.
 _NOT_SNAPSHOT = frozenset(
-    ("plant", "store", "cycle_hook", "_task", "_motor_table", "_global_table", "_owns_plant", "_channel_list")
+    ("plant", "store", "cycle_hook", "loop_entry_hook", "_task", "_motor_table", "_global_table", "_owns_plant", "_channel_list")
 )
 _SHARED_STATE = ("_loop_layout",)  # immutable after construction; shared, not copied
 

@@ -17,11 +17,24 @@ Two ways to run simulated time (SPEC.md §6):
 
 The follower stays open in the server for its whole life, so a client may close and reopen the
 device without the server seeing a hang-up and without losing the hand's state.
+
+`--env ID --seed N [--env-kwargs JSON]` serves a Gymnasium environment's own firmware
+(`gym.make(ID, **kwargs).unwrapped.firmware`: its plant, scene, arm and fresh store), so a host
+(`bh8 deploy`) sees byte for byte what an in-process evaluation of `env.reset(seed=N)` then
+`env.step(...)` sees. Every time a client enters LOOP with the env's layout (the env's setup
+script, then `loop_command`), the server runs the env's `prepare_episode`: restore of the env's
+post-LOOP snapshot (this also undoes whatever the client's supervisory commands did to the
+simulated time, baud rate and motors), randomisation (when on), and the episode's scene. The
+first entry is `reset(seed=N)`'s episode, each later one the next episode of that generator, as
+successive `reset()` calls give. The client's first block then plays the env's "A" block. A LOOP
+with another layout is served plainly (no episode). Unpaced only: LOOP cycles then cost exactly
+the simulated time the env charges.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import select
 import signal
@@ -134,9 +147,8 @@ def build_firmware(
 
     Shared by `bh8 serve` and the bh8sim:// URL handler so both serve the same hand. Without
     objects the plant is the one `Firmware(store_dir=..., seed=...)` builds itself, so the pty and
-    in-process give identical bytes (Contract 2). A scene built from a Gymnasium env id
-    (`bh8 serve --env ID --seed N`) belongs here too: another way of building the plant, plus the
-    firmware's cycle_hook.
+    in-process give identical bytes (Contract 2). `bh8 serve --env` serves an env's firmware
+    instead (`build_env_firmware`).
     """
     if profile not in FIRMWARE_PROFILES:
         raise ValueError(f"firmware profile must be one of {FIRMWARE_PROFILES}, got {profile!r}")
@@ -149,6 +161,54 @@ def build_firmware(
         plant.close()
         raise
     return firmware
+
+
+def build_env_firmware(env_id: str, seed: int, env_kwargs: dict | None = None, gui: bool = False):
+    """(env, firmware) for `bh8 serve --env`: the env's own firmware after its setup script, out of
+    LOOP again, with each LOOP entry in the env's layout starting the env's next episode (the
+    first one `reset(seed=seed)`'s).
+
+    Raises ValueError naming a bad id or keyword (before any pty is made).
+    """
+    import gymnasium as gym
+
+    import bh8_gym  # noqa: F401  (registers the environments)
+
+    kwargs = dict(env_kwargs or {})
+    if gui:
+        kwargs["render_mode"] = "human"
+    try:
+        env = gym.make(env_id, **kwargs).unwrapped
+    except gym.error.Error as error:
+        raise ValueError(f"--env {env_id!r}: {error}") from None
+    except TypeError as error:
+        raise ValueError(f"--env-kwargs for {env_id}: {error}") from None
+    if not hasattr(env, "prepare_episode"):
+        env.close()
+        raise ValueError(f"--env {env_id!r} is not a bh8-gym RealTime environment")
+    start_episodes_on_loop_entry(env, seed)
+    # The env left its firmware in LOOP (its snapshot's state); a client connects to a prompt.
+    env.firmware.transact(b"\x03")
+    return env, env.firmware
+
+
+def start_episodes_on_loop_entry(env, seed: int | None) -> None:
+    """Make every LOOP entry of `env.firmware` in the env's layout run `env.prepare_episode`
+    (the first with `seed`, later ones continuing its generator), as if the env's reset ran there.
+
+    Installed as `Firmware.loop_entry_hook`; the episode's restore keeps the serial bytes still
+    waiting (the "*" LOOP acknowledgement and any control block sent with the LOOP command).
+    """
+    seeds = [seed]
+
+    def start_episode(firmware, layout) -> None:
+        if layout != env.layout:
+            print(f"bh8 serve: LOOP layout {layout!r} is not {env.env_id}'s {env.layout!r}; "
+                  "serving it without starting an episode", file=sys.stderr, flush=True)
+            return
+        env.prepare_episode(seeds.pop() if seeds else None, keep_io=True)
+
+    env.firmware.loop_entry_hook = start_episode
 
 
 def shutdown_firmware(firmware) -> None:
@@ -359,17 +419,40 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); "
              "default: answer as soon as the simulated motion ends",
     )
-    parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default="4.3", help="firmware profile (default 4.3)")
+    parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default=None,
+                        help="firmware profile (default 4.3; with --env use --env-kwargs firmware_profile)")
     parser.add_argument(
         "--link", metavar="PATH", default=None,
         help="also make a symlink PATH -> the device (e.g. /dev/ttyUSB0), removed on exit",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the plant's randomised constants (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")
     parser.add_argument("--gui", action="store_true", help="show the PyBullet GUI (needs a display)")
     parser.add_argument(
         "--object", metavar="SPEC", action="append", default=[], dest="objects",
         help="place an object in the hand (repeatable; the palm faces up): " + OBJECT_SPEC_HELP,
     )
+    parser.add_argument(
+        "--env", metavar="ID", default=None,
+        help="serve a Gymnasium env's own hand (BH8Grasp-v0, BH8FingerReach-v0): each LOOP entry in the "
+             "env's layout starts the env's next episode, the first being reset(seed=--seed)'s, so "
+             "`bh8 deploy` sees byte for byte what an in-process evaluation sees; unpaced only; the "
+             "store is the env's own fresh one (no --state, --object, --firmware)",
+    )
+    parser.add_argument(
+        "--env-kwargs", metavar="JSON", default=None, type=_json_object,
+        help='keyword arguments of the env as a JSON object, e.g. \'{"randomize": false, "object_set": "test"}\'',
+    )
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({error}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object of keyword arguments, got {text!r}")
+    return value
 
 
 def _display_available() -> bool:
@@ -398,10 +481,15 @@ def run(args: argparse.Namespace) -> int:
         print("bh8 serve: --gui needs a display and DISPLAY is not set; run without --gui "
               "(or under xvfb-run)", file=sys.stderr)
         return 2
+    if args.env is not None:
+        return _run_env(args)
+    if args.env_kwargs is not None:
+        print("bh8 serve: --env-kwargs needs --env", file=sys.stderr)
+        return 2
     state_dir = args.state if args.state is not None else default_state_dir()
     try:
         with _native_stdout_to_stderr():
-            firmware = build_firmware(state_dir, args.firmware, args.seed, tuple(args.objects), args.gui)
+            firmware = build_firmware(state_dir, args.firmware or "4.3", args.seed, tuple(args.objects), args.gui)
     except ValueError as error:
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 2
@@ -411,14 +499,41 @@ def run(args: argparse.Namespace) -> int:
     return serve(firmware, realtime=args.realtime, link=args.link, store=state_dir)
 
 
-def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = None, store=None) -> int:
+def _run_env(args: argparse.Namespace) -> int:
+    conflicts = [name for name, given in (("--state", args.state is not None), ("--object", bool(args.objects)),
+                                           ("--firmware", args.firmware is not None), ("--realtime", args.realtime))
+                 if given]
+    if conflicts:
+        print(f"bh8 serve: --env serves the env's own hand unpaced; it cannot take {', '.join(conflicts)} "
+              "(set env options with --env-kwargs)", file=sys.stderr)
+        return 2
+    try:
+        with _native_stdout_to_stderr():
+            env, firmware = build_env_firmware(args.env, args.seed, args.env_kwargs, args.gui)
+    except ValueError as error:
+        print(f"bh8 serve: {error}", file=sys.stderr)
+        return 2
+
+    def close(served) -> None:
+        try:
+            served.shutdown()
+        finally:
+            env.close()
+
+    return serve(firmware, link=args.link, close=close,
+                 description=f"{args.env} seed {args.seed} {json.dumps(args.env_kwargs or {})}")
+
+
+def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = None, store=None,
+          close=shutdown_firmware, description: str | None = None) -> int:
     """Serve `firmware` on a new pty until SIGINT, SIGTERM or SIGHUP: print the device path as the
-    first line of stdout, then shut the firmware down (persisting its counters) and close its
-    plant. Returns the exit code: 0, or 1 when the pty or the link cannot be made."""
+    first line of stdout, then `close(firmware)` (default: shut it down, persisting its counters,
+    and close its plant). `description` names what is served in the start-up note on stderr.
+    Returns the exit code: 0, or 1 when the pty or the link cannot be made."""
     try:
         server = PtyServer(firmware, realtime=realtime, link=link)
     except OSError as error:
-        shutdown_firmware(firmware)
+        close(firmware)
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 1
 
@@ -430,14 +545,15 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
         mode = "paced to the wall clock" if realtime else "unpaced"
         linked = f" (link {server.link})" if server.link else ""
         stored = f", store {store}" if store is not None else ""
-        print(f"bh8 serve: firmware {firmware.profile} on {server.device}{linked}, {mode}{stored}; ^C to stop",
-              file=sys.stderr, flush=True)
+        served = f" ({description})" if description else ""
+        print(f"bh8 serve: firmware {firmware.profile}{served} on {server.device}{linked}, {mode}{stored}; "
+              "^C to stop", file=sys.stderr, flush=True)
         server.serve_forever()
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         try:
-            shutdown_firmware(firmware)
+            close(firmware)
         finally:
             server.close()
     return 0

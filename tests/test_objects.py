@@ -17,6 +17,7 @@ from bh8_gym.envs.objects import (
     ObjectSpec,
     PrimitiveRanges,
     parse_object_file,
+    RandomUrdfRanges,
     random_urdf_names,
     random_urdf_spec,
     sample_primitive,
@@ -51,7 +52,7 @@ def test_primitive_sampling_covers_every_kind_and_is_seeded():
 def test_random_urdf_split_is_fixed_and_disjoint():
     """Held-out test split = folders whose names end in 0; train = the rest; no overlap."""
     train, test = random_urdf_names("train"), random_urdf_names("test")
-    assert len(test) == 100 and len(train) == 900
+    assert len(test) == 100 and len(train) == 899  # 900 minus the broken 168
     assert all(name.endswith("0") for name in test)
     assert not any(name.endswith("0") for name in train)
     assert not set(train) & set(test)
@@ -73,17 +74,28 @@ def test_named_sets_sample_from_their_split():
 
 
 def test_random_urdf_models_are_scaled_into_a_graspable_size(client):
-    """The largest bounding-box extent of a loaded random URDF lies in 5-8 cm."""
+    """Loaded random URDFs: largest extent 5-8 cm, or up to 10 cm where a flat model was scaled up
+    to 4 cm high; none lower than 4 cm unless the 10 cm cap stopped it."""
     loader = ObjectLoader(client, visuals=False)
     rng = np.random.default_rng(1)
-    for name in ("000", "123", "456", "990"):
+    ranges = RandomUrdfRanges()
+    for name in ("000", "123", "456", "990", "001", "010", "100"):
         spec = random_urdf_spec(name, rng)
         body = loader.create(spec, (0, 0, 1), (0, 0, 0, 1))
         low, high = pybullet.getAABB(body, -1, physicsClientId=client)
-        extent = max(h - l for l, h in zip(low, high))
+        extents = [h - l for l, h in zip(low, high)]
         # PyBullet pads AABBs by its contact margin (about 1 mm per side).
-        assert 0.05 - 0.001 <= extent <= 0.08 + 0.004, (name, extent)
+        assert ranges.extent[0] - 0.001 <= max(extents) <= ranges.max_extent + 0.004, (name, extents)
+        assert extents[2] >= ranges.min_height - 0.001 or max(extents) >= ranges.max_extent - 0.001, (name, extents)
         assert pybullet.getDynamicsInfo(body, -1, physicsClientId=client)[0] == pytest.approx(spec.mass)
+
+
+def test_models_with_broken_meshes_are_left_out_of_the_splits():
+    """pybullet_data's random_urdfs/168 has NaN vertices: it is in no split, and asking for it by
+    name raises a ValueError naming it instead of loading a NaN-scaled body."""
+    assert "168" not in random_urdf_names("train") + random_urdf_names("test")
+    with pytest.raises(ValueError, match="168"):
+        random_urdf_spec("168", np.random.default_rng(0))
 
 
 def test_loader_caches_shapes_and_applies_mass_and_friction(client):

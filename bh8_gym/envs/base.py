@@ -3,12 +3,17 @@
 A step encodes the action as a control block with `realtime_codec.LoopLayout`, writes it to the
 emulated firmware, runs the firmware until it waits for the next block and decodes the feedback
 block it sent, exactly as `bh8 deploy` does over a serial cable to a real BH8-262. Each step costs
-the simulated time SPEC.md §6 charges: (control + feedback bytes) × 10 / BAUD + 1 ms.
+the simulated time SPEC.md §6 charges: (control + feedback bytes) × 10 / BAUD + the firmware's
+processing time, nominally 1 ms (`cycle_seconds` is that nominal figure); with randomize=True each
+reset draws the processing time (RandomizationRanges.processing_time), and `elapsed()`, the
+host's clock in the observation, follows the drawn latency.
 
 Reset runs nothing but a `Firmware.restore` of a snapshot taken once at construction, after the
 supervisory setup script (`setup_commands` then `loop_command`: the very lines `bh8 deploy` sends
-to a real hand) has run, then places the episode's scene and asks for one feedback block with an
-"A" header (no control data), which gives the first observation, as deploy does.
+to a real hand) has run, then draws the randomisation (plant parameters, then processing time),
+places the episode's scene (`prepare_episode`, which `bh8 serve --env` runs on LOOP entry) and asks
+for one feedback block with an "A" header (no control data), which gives the first observation,
+as deploy does.
 
 Observation (float32, `observation_fields` names every entry):
 
@@ -30,7 +35,12 @@ from typing import Any, Sequence
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.envs.randomization import PlantRandomizer, RandomizationRanges, sample_plant_parameters
+from bh8_gym.envs.randomization import (
+    PlantRandomizer,
+    RandomizationRanges,
+    sample_plant_parameters,
+    sample_processing_time,
+)
 from bh8_gym.envs.wrappers import bytes_to_unit
 from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
 
@@ -42,6 +52,8 @@ STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
 BITS_PER_BYTE = 10  # 8N1 (§9.1)
+# An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
+END_TOLERANCE_S = 1e-9
 
 
 class FirmwareProtocolError(RuntimeError):
@@ -119,11 +131,16 @@ class BH8LoopEnv(gym.Env):
         )
         self.loop_command = f"{prefix}LOOP"
 
-        control_bytes = self.layout.control_block_size(HEADER_CONTROL_FEEDBACK)
+        control_bytes = self._control_block_size = self.layout.control_block_size(HEADER_CONTROL_FEEDBACK)
         #: Simulated seconds per step (SPEC.md §6): both blocks' bytes at BAUD plus processing.
         from bh8_gym.firmware import REALTIME_PROCESSING_S
 
         self.cycle_seconds = (control_bytes + self.layout.feedback_size) * BITS_PER_BYTE / self.baud + REALTIME_PROCESSING_S
+        #: The firmware's processing seconds per cycle without randomisation: what a host assumes.
+        self.nominal_processing_time = REALTIME_PROCESSING_S
+        # The host clock's terms, as the firmware computes a cycle's time (SPEC.md §6).
+        self._seconds_per_byte = BITS_PER_BYTE / self.baud
+        self._feedback_seconds = self.layout.feedback_size * self._seconds_per_byte
 
         # Action space: the control data of one block, in control_fields order.
         low = [-128 if name == "LCV" else 0 for _, name in self.layout.control_fields]
@@ -184,12 +201,13 @@ class BH8LoopEnv(gym.Env):
             raise FirmwareProtocolError(f"{self.loop_command!r} answered {echo!r}")
         self.firmware.cycle_hook = self.scene.cycle_hook
         self._snapshot = self.firmware.snapshot()
-        self._randomizer = PlantRandomizer(self.plant)
+        self._randomizer = PlantRandomizer(self.plant, self.firmware)
 
         self._prev_action = np.zeros(self._n_act, dtype=np.int64)
         self._feedback_block_size = self.layout.feedback_size
         self._a_block = self.layout.encode_control((), HEADER_FEEDBACK)
-        self._episode_start = 0.0
+        self._elapsed = 0.0
+        self._processing_time = self.nominal_processing_time
         self._cycles = 0
         self._last_values: tuple[int, ...] = ()
 
@@ -267,8 +285,29 @@ class BH8LoopEnv(gym.Env):
         return values
 
     def elapsed(self) -> float:
-        """Seconds of the host's clock since its first block of this episode (the reset's "A" block)."""
-        return self.firmware.time - self._episode_start
+        """Seconds of the host's clock since its first block of this episode (the reset's "A" block).
+
+        The clock the firmware charges (SPEC.md §6): each cycle's block bytes at BAUD plus the
+        firmware's processing time, so it follows a randomised latency. It is summed from 0 at
+        the reset's "A" block by `next_elapsed`, in the firmware's order of additions, so a host
+        that knows the latency (`bh8 deploy --clock cycles`, nominal latency) gets the same bits.
+        """
+        return self._elapsed
+
+    def next_elapsed(self, elapsed: float, control_block_size: int, processing_time: float) -> float:
+        """The host's clock after one more cycle: `elapsed` + the control block's transfer time +
+        `processing_time` + the feedback block's transfer time, added in the order the firmware
+        advances its clock (float addition is not associative; phase boundaries depend on it)."""
+        return elapsed + control_block_size * self._seconds_per_byte + processing_time + self._feedback_seconds
+
+    def nominal_episode_steps(self) -> int:
+        """Steps after reset until truncation on the nominal latency (`bh8 deploy`'s default cycles)."""
+        elapsed = self.next_elapsed(0.0, len(self._a_block), self.nominal_processing_time)
+        steps = 0
+        while not elapsed >= self.episode_seconds - END_TOLERANCE_S:
+            elapsed = self.next_elapsed(elapsed, self._control_block_size, self.nominal_processing_time)
+            steps += 1
+        return steps
 
     # ------------------------------------------------------------------ public observation builder
 
@@ -301,17 +340,33 @@ class BH8LoopEnv(gym.Env):
 
     # ------------------------------------------------------------------ gymnasium API
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def prepare_episode(self, seed: int | None = None, keep_io: bool = False) -> None:
+        """Everything `reset` does before its "A" block: seed `np_random` (as gym.Env.reset), remove
+        the object, restore the post-LOOP snapshot, randomise the plant and the firmware's
+        processing time (with randomize=False the restore puts back the firmware's default), then
+        draw and place the episode's scene.
+
+        `bh8 serve --env` calls this when a client enters LOOP, so the served hand is the state
+        this env's reset gives; the client's first block then plays the part of the "A" block.
+        `keep_io=True` keeps the firmware's pending serial bytes across the restore (the served
+        LOOP's "*" and any control block that came with the LOOP command).
+        """
         super().reset(seed=seed)
         self.scene.remove_object()
-        self.firmware.restore(self._snapshot)
+        self.firmware.restore(self._snapshot, keep_io=keep_io)
         if self.randomize:
-            self._randomizer.apply(sample_plant_parameters(self._base_parameters, self.np_random, self.randomization))
+            params = sample_plant_parameters(self._base_parameters, self.np_random, self.randomization)
+            self._randomizer.apply(params, sample_processing_time(self.np_random, self.randomization))
         self._begin_episode(self.np_random)
+        self._processing_time = self.firmware.processing_time
+        self._elapsed = 0.0
         self._prev_action[:] = 0
         self._cycles = 0
-        self._episode_start = self.firmware.time
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        self.prepare_episode(seed)
         values = self._cycle(self._a_block)
+        self._elapsed = self.next_elapsed(0.0, len(self._a_block), self._processing_time)
         self._last_values = values
         info = {"control_block": self._a_block, "feedback_block": self._feedback_block}
         if self.privileged:
@@ -324,8 +379,8 @@ class BH8LoopEnv(gym.Env):
         values = self._cycle(block)
         self._prev_action[:] = control
         self._last_values = values
-        elapsed = self.elapsed()
-        truncated = elapsed >= self.episode_seconds - 1e-9
+        elapsed = self._elapsed = self.next_elapsed(self._elapsed, self._control_block_size, self._processing_time)
+        truncated = elapsed >= self.episode_seconds - END_TOLERANCE_S
         reward, terms, success, terminated = self._reward(values, elapsed, truncated)
         info = {
             "control_block": block,

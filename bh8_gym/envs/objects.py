@@ -17,8 +17,8 @@ Object sets (kwarg `object_set` of the environments):
   from `PrimitiveRanges` every episode.
 - ``"train"`` / ``"test"``: pybullet_data's ``random_urdfs`` models (1000 random convex-decomposed
   blobs), each scaled so its largest bounding-box extent is a fixed per-model size in
-  `RandomUrdfRanges.extent`. The held-out test split is the models whose folder name ends in 0
-  (100 models); train is the other 900. Fixed by name, so it never changes with seeds.
+  `RandomUrdfRanges.extent` (flat ones scaled up to `min_height`, within `max_extent`). The held-out test split is the models whose folder name ends in 0
+  (100 models); train is the other 899 (168 has a broken mesh). Fixed by name, so it never changes with seeds.
 - ``"mixed"``: primitives half the time, train models the other half.
 - ``"all"``: primitives, train and test (demonstrations, not evaluation).
 
@@ -105,6 +105,11 @@ class RandomUrdfRanges:
     """How pybullet_data's random URDFs are resized; mass and friction drawn per episode."""
 
     extent: tuple[float, float] = (0.05, 0.08)  # metres: largest bbox extent, fixed per model
+    # A third of the models are flat (height under 3 cm at that size): a palm-down hand whose
+    # fingertips must stay off the table cannot reach them (scenes.PlacementRanges), so flat
+    # models are scaled up to this height, as long as their largest extent stays under max_extent.
+    min_height: float = 0.04
+    max_extent: float = 0.10
     mass: tuple[float, float] = (0.05, 0.40)
     friction: tuple[float, float] = (0.4, 1.2)
 
@@ -115,14 +120,19 @@ def random_urdf_root() -> Path:
     return Path(pybullet_data.getDataPath()) / "random_urdfs"
 
 
+# Models whose mesh cannot be loaded: 168.obj has NaN vertices (pybullet_data 3.2.7).
+BROKEN_RANDOM_URDFS = frozenset({"168"})
+
+
 def random_urdf_names(split: str) -> tuple[str, ...]:
-    """Model folder names of a split: "test" = names ending in 0 (held out), "train" = the rest."""
+    """Model folder names of a split: "test" = names ending in 0 (held out), "train" = the rest
+    (without BROKEN_RANDOM_URDFS)."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     root = random_urdf_root()
     names = sorted(p.name for p in root.iterdir() if (p / f"{p.name}.urdf").is_file()) if root.is_dir() else []
     held_out = split == "test"
-    return tuple(n for n in names if n.endswith("0") == held_out)
+    return tuple(n for n in names if n.endswith("0") == held_out and n not in BROKEN_RANDOM_URDFS)
 
 
 _MESH_SCALE = re.compile(r"\s+")
@@ -161,12 +171,16 @@ def random_urdf_spec(name: str, rng: np.random.Generator, ranges: RandomUrdfRang
     urdf = random_urdf_root() / name / f"{name}.urdf"
     mesh_path, mesh_scale = _urdf_single_mesh(urdf)
     low, high = obj_vertex_bounds(mesh_path)
-    largest = float(np.max((high - low) * mesh_scale))
+    extents = (high - low) * mesh_scale
+    largest, height = float(np.max(extents)), float(extents[2])
+    if not (np.isfinite(largest) and largest > 0 and height > 0):
+        raise ValueError(f"random_urdfs model {name!r} has a degenerate mesh {str(mesh_path)!r}")
     extent = ranges.extent[0] + (ranges.extent[1] - ranges.extent[0]) * _unit_hash(name)
+    factor = min(max(extent / largest, ranges.min_height / height), ranges.max_extent / largest)
     return ObjectSpec(
         kind="mesh",
         path=str(mesh_path),
-        scale=float(mesh_scale[0]) * extent / largest,
+        scale=float(mesh_scale[0]) * factor,
         mass=float(rng.uniform(*ranges.mass)),
         friction=float(rng.uniform(*ranges.friction)),
         name=f"random_urdf/{name}",

@@ -1,7 +1,7 @@
 """What is in an environment's world, where it goes each episode, and what the arm does each cycle.
 
-Shared by the environments and by `bh8 serve --env ID --seed N`, so the served hand sits in the
-exact scene the environment builds for that seed: `build_scene(env_id, plant)` makes the static
+Shared by the environments and `scene_for_seed` (the env's world for a seed without the env;
+`bh8 serve --env ID --seed N` serves the env itself): `build_scene(env_id, plant)` makes the static
 world, `scene.sample_episode(rng)` draws an episode (the SAME draws in the same order as the
 environment's reset), `scene.begin_episode(episode)` places it, and `scene.cycle_hook` (set as
 `Firmware.cycle_hook`) moves the arm once per RealTime cycle. The arm's clock starts at the first
@@ -256,22 +256,43 @@ def build_scene(env_id: str, plant, options: SceneOptions | None = None):
     raise ValueError(f"no scene for environment {env_id!r}; expected BH8Grasp-v0 or BH8FingerReach-v0")
 
 
-def scene_for_seed(env_id: str, plant, seed: int, randomize: bool = True, options: SceneOptions | None = None):
-    """The scene `env_id`'s `reset(seed=seed)` builds, in `plant` (for `bh8 serve --env ID --seed N`).
+def scene_for_seed(
+    env_id: str,
+    plant,
+    seed: int,
+    randomize: bool = True,
+    options: SceneOptions | None = None,
+    firmware=None,
+    ranges=None,
+):
+    """The scene `env_id`'s `reset(seed=seed)` builds, in `plant`, without building the env.
 
-    Draws exactly what the environment's first reset after `seed` draws, in the same order
-    (plant randomisation with the default ranges, then the episode) from gymnasium's seeded
-    generator, applies them and places the scene. Set `firmware.cycle_hook = scene.cycle_hook`;
-    the arm's clock starts at the first RealTime cycle. The plant should be freshly built with the
-    environment's base PlantParameters (default: PlantParameters()).
+    Draws exactly what the environment's first reset after `seed` draws, in the same order, from
+    gymnasium's seeded generator: with `randomize`, the plant parameters and then the RealTime
+    processing time (applied to `firmware` when given; the draw is made either way so the episode
+    draw that follows is the env's), then the episode; it applies them and places the scene.
+    `ranges`: the env's RandomizationRanges (default: the defaults). Set
+    `firmware.cycle_hook = scene.cycle_hook`; the arm's clock starts at the first RealTime cycle.
+    The plant should be freshly built with the environment's base PlantParameters.
+
+    This gives the env's world, not its firmware state: `bh8 serve --env ID --seed N` serves the
+    env's own firmware instead (`BH8LoopEnv.prepare_episode` on LOOP entry), which is byte-exact.
     """
     from gymnasium.utils import seeding
 
-    from bh8_gym.envs.randomization import PlantRandomizer, sample_plant_parameters
+    from bh8_gym.envs.randomization import (
+        PlantRandomizer,
+        RandomizationRanges,
+        sample_plant_parameters,
+        sample_processing_time,
+    )
 
+    ranges = ranges or RandomizationRanges()
     rng, _ = seeding.np_random(seed)
     scene = build_scene(env_id, plant, options)
     if randomize:
-        PlantRandomizer(plant).apply(sample_plant_parameters(plant.params, rng))
+        params = sample_plant_parameters(plant.params, rng, ranges)
+        processing_time = sample_processing_time(rng, ranges)
+        PlantRandomizer(plant, firmware).apply(params, processing_time if firmware is not None else None)
     scene.begin_episode(scene.sample_episode(rng))
     return scene
