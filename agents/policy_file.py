@@ -155,11 +155,15 @@ def export_sb3_policy(model, path: str | os.PathLike, vec_normalize=None, metada
         )
     if not isinstance(model.action_space, gym.spaces.Box):
         raise PolicyFileError(f"only Box action spaces can be exported, got {model.action_space}")
-    if getattr(model, "use_sde", False):
-        raise PolicyFileError("policies trained with gSDE (use_sde=True) cannot be exported")
+    # gSDE only changes PPO's exploration noise: the deterministic action is still the mean (squashed
+    # by tanh when the policy squashes its output), so such policies export like the others.
+    # SAC's gSDE actor clips its mean with a Hardtanh before the tanh, which this format lacks.
+    if isinstance(model, SAC) and getattr(model, "use_sde", False):
+        raise PolicyFileError("SAC policies trained with gSDE (use_sde=True) cannot be exported; "
+                              "train SAC without use_sde")
     if isinstance(model, PPO):
         chain = [*policy.mlp_extractor.policy_net, policy.action_net]
-        output_transform = "clip"
+        output_transform = "tanh" if policy.squash_output else "clip"
     elif isinstance(model, SAC):
         chain = [*policy.actor.latent_pi, policy.actor.mu]
         output_transform = "tanh"

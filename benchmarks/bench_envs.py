@@ -3,9 +3,15 @@ the overhead against raw PyBullet stepping of the same scene, and a cProfile of 
 
     python benchmarks/bench_envs.py [--steps 3000] [--envs 2] [--profile]
 
-Overhead ratio = wall time of env steps / wall time of bare `p.stepSimulation` calls covering the
-same simulated time in the same world (hand, table, object), i.e. what the drive train model,
-the HCTL emulation, the firmware's byte handling and the env add on top of PyBullet itself.
+Overhead ratio = wall time of the env steps / wall time of bare `p.stepSimulation` calls over the
+same simulated time in the same world: the same episodes (same seeds, so the same objects and
+placements, physics steps per episode as the env run took), the hand's joints under PyBullet's own
+velocity motors closing the fingers at the benchmark action's speed with the drive's full torque
+(so the fingers reach the object and the contacts load the solver as in the env run). Resets are
+excluded from both. That is what the drive-train model, the HCTL emulation, the firmware's byte
+handling and the env add on top of PyBullet itself. As a cross-check the env run also times its
+own `p.stepSimulation` calls ("in-env physics"): env wall / in-env physics is the same ratio
+measured on the env's very states (the raw baseline's arm stays still; the env's lifts).
 """
 from __future__ import annotations
 
@@ -21,6 +27,12 @@ import numpy as np
 import pybullet as p
 
 import bh8_gym  # noqa: F401
+from bh8_gym.motion_control import VELOCITY_SCALE, sample_period
+from bh8_gym.parameters import coefficient
+from bh8_gym.plant import (
+    FINGER_JOINTS, INNER_COUNTS_PER_RAD, INNER_GEAR_RATIO, NUM_JOINTS, SPREAD_COUNTS_PER_RAD, SPREAD_GEAR_RATIO,
+    SPREAD_INDEX,
+)
 from bh8_gym.envs.wrappers import ContinuousActions
 
 
@@ -31,42 +43,114 @@ def closing_policy(env):
                     dtype=np.int16).clip(low, high)
 
 
-def bench_single(env_id: str, steps: int) -> dict:
+def pybullet_motor_targets(env, action) -> tuple[list[float], list[float]]:
+    """Joint velocity targets (rad/s) and force limits (N·m) for PyBullet's own velocity motors that
+    move the hand as `action` (LCV velocity bytes, saturating gains) drives it: each finger closes
+    at the LCV speed (inner joint M/125 degrees, outer joint M/375 relative to it) with the drive's
+    full torque; the spread likewise; F2's spread joint follows F1's through the gear constraint."""
+    period = sample_period(31)
+    speed = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}  # motor counts per second
+    for (motor, name), value in zip(env.layout.control_fields, action):
+        if name == "LCV":
+            speed[motor] = value * coefficient(env.coefficients["LCVC"]) / VELOCITY_SCALE / period
+    prm = env.plant.params
+    finger_torque = prm.motor_peak_torque * INNER_GEAR_RATIO * prm.finger_drive_efficiency
+    spread_torque = prm.motor_peak_torque * SPREAD_GEAR_RATIO * prm.spread_drive_efficiency
+    velocities, forces = [0.0] * NUM_JOINTS, [0.0] * NUM_JOINTS
+    velocities[SPREAD_INDEX[0]], forces[SPREAD_INDEX[0]] = speed[4] / SPREAD_COUNTS_PER_RAD, spread_torque
+    for finger, inner, outer in FINGER_JOINTS:
+        omega = speed[finger + 1] / INNER_COUNTS_PER_RAD
+        velocities[inner], forces[inner] = omega, finger_torque
+        velocities[outer], forces[outer] = omega / 3.0, finger_torque
+    return velocities, forces
+
+
+def raw_pybullet_seconds(env, action, episode_physics_steps: list[int], seed: int) -> float:
+    """Wall time of bare `p.stepSimulation` over the env run's episodes (see the module docstring)."""
+    plant = env.plant
+    client = plant.client
+    velocities, forces = pybullet_motor_targets(env, action)
+    total = 0.0
+    for episode, steps in enumerate(episode_physics_steps):
+        env.reset(seed=seed if episode == 0 else None)
+        p.setJointMotorControlArray(plant.hand_id, plant.joint_indices, p.VELOCITY_CONTROL, targetVelocities=velocities,
+                                    forces=forces, physicsClientId=client)
+        start = time.perf_counter()
+        for _ in range(steps):
+            p.stepSimulation(physicsClientId=client)
+        total += time.perf_counter() - start
+    return total
+
+
+class PhysicsTimer:
+    """Times the env's own `pybullet.stepSimulation` calls (patched on the module while active)."""
+
+    def __init__(self):
+        self.seconds, self.calls, self._original = 0.0, 0, p.stepSimulation
+
+    def __enter__(self) -> "PhysicsTimer":
+        original, clock = self._original, time.perf_counter
+
+        def timed_step(*args, **kwargs):
+            start = clock()
+            original(*args, **kwargs)
+            self.seconds += clock() - start
+            self.calls += 1
+
+        p.stepSimulation = timed_step
+        return self
+
+    def __exit__(self, *exc) -> None:
+        p.stepSimulation = self._original
+
+
+def run_episodes(env, action, steps: int, seed: int) -> tuple[float, float, list[int], float]:
+    """(wall seconds of the steps, simulated seconds, physics steps per episode, mean reset seconds);
+    the steps' wall time excludes the resets."""
+    env.reset(seed=seed)
+    wall, sim_time, episode_steps, reset_wall = 0.0, 0.0, [], 0.0
+    episode_start = env.plant.time
+    clock = time.perf_counter
+    start = clock()
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            wall += clock() - start
+            sim_time += env.elapsed()
+            episode_steps.append(round((env.plant.time - episode_start) / env.plant.dt))
+            start = clock()
+            env.reset()
+            reset_wall += clock() - start
+            episode_start = env.plant.time
+            start = clock()
+    wall += clock() - start
+    sim_time += env.elapsed()
+    episode_steps.append(round((env.plant.time - episode_start) / env.plant.dt))
+    return wall, sim_time, episode_steps, reset_wall / max(len(episode_steps) - 1, 1)
+
+
+def bench_single(env_id: str, steps: int, seed: int = 0) -> dict:
     env = gym.make(env_id).unwrapped
     action = closing_policy(env)
-    env.reset(seed=0)
-    resets, sim_time = 0, 0.0
-    start = time.perf_counter()
-    reset_wall = 0.0
-    for _ in range(steps):
-        _, _, terminated, truncated, info = env.step(action)
-        if terminated or truncated:
-            sim_time += env.elapsed()
-            t = time.perf_counter()
-            env.reset()
-            reset_wall += time.perf_counter() - t
-            resets += 1
-    sim_time += env.elapsed()
-    wall = time.perf_counter() - start
-    physics_steps = sim_time / env.plant.dt
-    # Raw PyBullet stepping of the same world over the same simulated time.
-    env.reset(seed=0)
-    client = env.plant.client
-    t = time.perf_counter()
-    for _ in range(int(physics_steps)):
-        p.stepSimulation(physicsClientId=client)
-    raw = time.perf_counter() - t
+    wall, sim_time, episode_steps, reset_seconds = run_episodes(env, action, steps, seed)
+    physics_steps = sum(episode_steps)
+    raw = raw_pybullet_seconds(env, action, episode_steps, seed)
+    with PhysicsTimer() as physics:
+        timed_wall, _, _, _ = run_episodes(env, action, steps, seed)
     env.close()
     return {
         "env": env_id,
         "steps_per_s": steps / wall,
         "sim_s_per_wall_s": sim_time / wall,
-        "reset_ms": 1e3 * reset_wall / max(resets, 1),
+        "reset_ms": 1e3 * reset_seconds,
         "cycle_ms": 1e3 * env.cycle_seconds,
+        "physics_dt_ms": 1e3 * env.plant.dt,
         "physics_steps_per_env_step": physics_steps / steps,
         "raw_pybullet_step_us": 1e6 * raw / physics_steps,
+        "in_env_physics_step_us": 1e6 * physics.seconds / physics.calls,
         "env_per_physics_step_us": 1e6 * wall / physics_steps,
         "overhead_ratio": wall / raw,
+        "in_env_overhead_ratio": timed_wall / physics.seconds,
     }
 
 
@@ -109,13 +193,14 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true")
     args = parser.parse_args()
     for env_id in ("BH8FingerReach-v0", "BH8Grasp-v0"):
-        result = bench_single(env_id, args.steps)
+        r = bench_single(env_id, args.steps)
         print(
-            f"{env_id:18s} 1 process: {result['steps_per_s']:7.0f} env steps/s, "
-            f"{result['sim_s_per_wall_s']:5.2f} sim s/wall s, cycle {result['cycle_ms']:.2f} ms "
-            f"({result['physics_steps_per_env_step']:.2f} physics steps), reset {result['reset_ms']:.2f} ms, "
-            f"raw PyBullet {result['raw_pybullet_step_us']:.0f} us/physics step vs env "
-            f"{result['env_per_physics_step_us']:.0f} us -> overhead ratio {result['overhead_ratio']:.2f}"
+            f"{env_id:18s} 1 process: {r['steps_per_s']:7.0f} env steps/s, {r['sim_s_per_wall_s']:5.2f} sim s/wall s, "
+            f"cycle {r['cycle_ms']:.2f} ms = {r['physics_steps_per_env_step']:.2f} physics steps of {r['physics_dt_ms']:.1f} ms, "
+            f"reset {r['reset_ms']:.2f} ms\n"
+            f"{'':18s} physics step: raw PyBullet {r['raw_pybullet_step_us']:.0f} us, in the env {r['in_env_physics_step_us']:.0f} us; "
+            f"env {r['env_per_physics_step_us']:.0f} us per physics step -> overhead ratio {r['overhead_ratio']:.2f} "
+            f"(over in-env physics {r['in_env_overhead_ratio']:.2f})"
         )
         vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200))
         print(f"{env_id:18s} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total")

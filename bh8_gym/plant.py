@@ -162,7 +162,7 @@ class PlantParameters:
             raise PlantError(f"strain_offsets needs 3 values, got {self.strain_offsets!r}")
 
 
-@dataclass
+@dataclass(slots=True)  # slots: the step reads these fields many times per step
 class _PlantState:
     """The plant's own state besides PyBullet's (saved and restored with it)."""
 
@@ -177,10 +177,11 @@ class _PlantState:
     preload: list = field(default_factory=lambda: [0.0] * 3)  # N·m, set from params at construction
     closing_peak: list = field(default_factory=lambda: [0.0] * 3)  # rad/s, decaying
     opening_peak: list = field(default_factory=lambda: [0.0] * 3)
-    positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
-    previous_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
-    velocities: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
-    torques: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
+    # Joint states of the last step, as PyBullet reported them (replaced whole each step).
+    positions: tuple = (0.0,) * NUM_JOINTS
+    previous_positions: tuple = (0.0,) * NUM_JOINTS
+    velocities: tuple = (0.0,) * NUM_JOINTS
+    torques: tuple = (0.0,) * NUM_JOINTS
     motor_torques: list = field(default_factory=lambda: [0.0] * 4)
     hold_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # where locked joints are held
     held: list = field(default_factory=lambda: [False] * NUM_JOINTS)
@@ -398,6 +399,7 @@ class HandPlant:
         """Advance one physics step of `dt` seconds."""
         self._command_joints()
         state = self._state
+        client = self._client
         command = (state.target_positions, state.target_velocities, state.forces, state.position_gains)
         if command != self._sent_command:
             # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain
@@ -405,20 +407,19 @@ class HandPlant:
             p.setJointMotorControlArray(
                 self.hand_id, self.joint_indices, p.POSITION_CONTROL, targetPositions=command[0],
                 targetVelocities=command[1], forces=command[2], positionGains=command[3],
-                velocityGains=self._velocity_gains, physicsClientId=self._client,
+                velocityGains=self._velocity_gains, physicsClientId=client,
             )
             self._sent_command = tuple(list(row) for row in command)
-        p.stepSimulation(physicsClientId=self._client)
+        p.stepSimulation(physicsClientId=client)
         self._read_joints()
         self._update_after_step()
 
     def _read_joints(self) -> None:
+        """Joint positions, velocities and applied torques (tuples, replaced whole, never mutated)."""
         state = self._state
         joints = p.getJointStates(self.hand_id, self.joint_indices, physicsClientId=self._client)
         state.previous_positions = state.positions
-        state.positions = [joint[0] for joint in joints]
-        state.velocities = [joint[1] for joint in joints]
-        state.torques = [joint[3] for joint in joints]
+        state.positions, state.velocities, _, state.torques = zip(*joints)
 
     def _hold(self, joint: int, backdriven: bool = False, latch: float = 0.0) -> None:
         """Lock `joint` (worm self-locking) where it is now, or where it was already held.
@@ -763,7 +764,7 @@ class HandPlant:
         state.latched_torque = [0.0] * NUM_JOINTS
         state.drive_capacity = [0.0] * 3
         self._read_joints()
-        state.previous_positions[:] = state.positions
+        state.previous_positions = state.positions
 
     # ---------------------------------------------------------------- wrist and world
     def set_wrist_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0), teleport: bool = False) -> None:

@@ -170,9 +170,10 @@ def _config_file(name: str) -> Path:
     return default_config_path("PPO", REACH).with_name(name)
 
 
-@pytest.mark.parametrize("algorithm", ["PPO", "SAC"])
-def test_exported_policy_matches_sb3_actions(tmp_path, algorithm):
-    """The .npz runs with numpy alone and gives SB3's deterministic actions on random observations."""
+@pytest.mark.parametrize("algorithm,use_sde", [("PPO", False), ("SAC", False), ("PPO", True)])
+def test_exported_policy_matches_sb3_actions(tmp_path, algorithm, use_sde):
+    """The .npz runs with numpy alone and gives SB3's deterministic actions on random observations
+    (also for gSDE policies, whose deterministic action is the same mean)."""
     from stable_baselines3 import PPO, SAC
 
     from bh8_gym.agents.env_factory import make_env
@@ -181,7 +182,7 @@ def test_exported_policy_matches_sb3_actions(tmp_path, algorithm):
 
     env = make_env(REACH, {})
     try:
-        model = {"PPO": PPO, "SAC": SAC}[algorithm]("MlpPolicy", env, seed=1, device="cpu",
+        model = {"PPO": PPO, "SAC": SAC}[algorithm]("MlpPolicy", env, seed=1, device="cpu", use_sde=use_sde,
                                                     policy_kwargs={"net_arch": [32, 24]})
         # move the weights away from their init so a wrong layer order or activation shows
         for parameter in model.policy.parameters():
@@ -199,6 +200,21 @@ def test_exported_policy_matches_sb3_actions(tmp_path, algorithm):
     assert single.shape == (policy.action_dim,)
     with pytest.raises(ValueError, match="observation must have"):
         policy.predict(np.zeros(policy.observation_dim + 1))
+
+
+def test_sac_with_gsde_is_refused_by_name(tmp_path):
+    from stable_baselines3 import SAC
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import PolicyFileError, export_sb3_policy
+
+    env = make_env(REACH, {})
+    try:
+        model = SAC("MlpPolicy", env, seed=1, device="cpu", use_sde=True, policy_kwargs={"net_arch": [8]})
+        with pytest.raises(PolicyFileError, match="gSDE"):
+            export_sb3_policy(model, tmp_path / "policy.npz")
+    finally:
+        env.close()
 
 
 def torch_randn_like(parameter):

@@ -144,12 +144,19 @@ class BH8GraspEnv(BH8LoopEnv):
     def _finger_contacts(self) -> tuple[np.ndarray, bool]:
         """(per-finger touching flags, whether any part of the hand touches the object)."""
         touching = np.zeros(3)
+        fingers, any_contact = self._touching_fingers()
+        for finger in fingers:
+            touching[finger] = 1.0
+        return touching, any_contact
+
+    def _touching_fingers(self) -> tuple[set, bool]:
+        """(the set of finger indices 0-2 touching the object, whether any part of the hand touches it),
+        from one contact query of the last physics step."""
         contacts = self._p.getContactPoints(self._hand, self.scene.object_body, physicsClientId=self._client)
-        for contact in contacts:
-            finger = self._finger_of_link.get(contact[3])
-            if finger is not None:
-                touching[finger] = 1.0
-        return touching, bool(contacts)
+        finger_of_link = self._finger_of_link
+        fingers = {finger_of_link.get(contact[3]) for contact in contacts}
+        fingers.discard(None)
+        return fingers, bool(contacts)
 
     def _fill_privileged(self, out: np.ndarray) -> None:
         position = self._object_state()
@@ -173,22 +180,21 @@ class BH8GraspEnv(BH8LoopEnv):
     def _reward(self, values, elapsed: float, done: bool):
         p, client, w = self._p, self._client, self.weights
         body = self.scene.object_body
-        position, _ = p.getBasePositionAndOrientation(body, physicsClientId=client)
-        tips = p.getLinkStates(self._hand, self._tip_links, physicsClientId=client)
+        x, y, z = p.getBasePositionAndOrientation(body, physicsClientId=client)[0]
         distance = 0.0
-        for state in tips:
-            tip = state[4]
-            distance += ((tip[0] - position[0]) ** 2 + (tip[1] - position[1]) ** 2 + (tip[2] - position[2]) ** 2) ** 0.5
+        for state in p.getLinkStates(self._hand, self._tip_links, physicsClientId=client):
+            tip_x, tip_y, tip_z = state[4]
+            distance += ((tip_x - x) ** 2 + (tip_y - y) ** 2 + (tip_z - z) ** 2) ** 0.5
         distance /= 3.0
-        contacts, held = self._finger_contacts()
-        n_contacts = float(contacts.sum())
+        fingers, held = self._touching_fingers()
         lowest = p.getAABB(body, -1, physicsClientId=client)[0][2]
-        rise = position[2] - self.scene.object_rest_z
-        lift_fraction = min(max(rise / self.arm.lift_height, 0.0), 1.0) if self.arm.lift_height > 0 else 0.0
+        rise = z - self.scene.object_rest_z
+        lift_height = self.arm.lift_height
+        lift_fraction = min(max(rise / lift_height, 0.0), 1.0) if lift_height > 0 else 0.0
         success = bool(lowest > self.scene.table_top + self.success_height and held)
         terms = {
             "reach": -w.reach * distance / w.reach_scale,
-            "contact": w.contact * n_contacts / 3.0,
+            "contact": w.contact * float(len(fingers)) / 3.0,
             "lift": w.lift * lift_fraction,
             "success": w.success if (done and success) else 0.0,
         }
