@@ -45,7 +45,10 @@ class EvaluationCallback(BaseCallback):
         if self._env is None:
             self._env = make_env(config["env_id"], config["eval_env_kwargs"])
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
-        results = run_episodes(self.model, self._env, self.n_episodes, seed=self.eval_seed)
+        from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
+
+        policy = HostObservationModel(self.model) if host_observation_count(self.model) else self.model
+        results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed)
         summary = summarize(results)
         row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
         new_file = not self._csv_path.exists()

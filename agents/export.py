@@ -26,11 +26,12 @@ def max_action_difference(sb3_policy, numpy_policy: NumpyPolicy, n_observations:
     which exercises saturating tanh/clip outputs as well as the linear region.
     """
     space = sb3_policy.model.observation_space
+    size = sb3_policy.observation_dim  # the actor's inputs (fewer than the space for an asymmetric model)
     rng = np.random.default_rng(seed)
-    low = np.where(np.isfinite(space.low), space.low, -3.0)
-    high = np.where(np.isfinite(space.high), space.high, 3.0)
-    observations = rng.uniform(low, high, size=(n_observations, *space.shape)).astype(np.float32)
-    expected, _ = sb3_policy.model.predict(observations, deterministic=True)
+    low = np.where(np.isfinite(space.low), space.low, -3.0)[:size]
+    high = np.where(np.isfinite(space.high), space.high, 3.0)[:size]
+    observations = rng.uniform(low, high, size=(n_observations, size)).astype(np.float32)
+    expected, _ = sb3_policy.predict(observations, deterministic=True)
     actual, _ = numpy_policy.predict(observations)
     return float(np.max(np.abs(np.asarray(expected, dtype=np.float64) - actual)))
 

@@ -161,6 +161,10 @@ def export_sb3_policy(model, path: str | os.PathLike, vec_normalize=None, metada
     if isinstance(model, SAC) and getattr(model, "use_sde", False):
         raise PolicyFileError("SAC policies trained with gSDE (use_sde=True) cannot be exported; "
                               "train SAC without use_sde")
+    from bh8_gym.agents.asymmetric import host_observation_count
+
+    # An asymmetric actor zeroes the privileged entries: keep only the host columns of its first layer.
+    host_observations = host_observation_count(model)
     if isinstance(model, PPO):
         chain = [*policy.mlp_extractor.policy_net, policy.action_net]
         output_transform = "tanh" if policy.squash_output else "clip"
@@ -172,10 +176,10 @@ def export_sb3_policy(model, path: str | os.PathLike, vec_normalize=None, metada
     linears, activations = _linear_chain(chain)
     if len(set(activations)) > 1 or len(activations) != len(linears) - 1:
         raise PolicyFileError(f"expected one activation between consecutive linear layers, got {activations}")
-    obs_dim = model.observation_space.shape[0]
+    obs_dim = host_observations or model.observation_space.shape[0]
     if vec_normalize is not None and vec_normalize.norm_obs:
-        obs_mean = np.asarray(vec_normalize.obs_rms.mean, dtype=np.float64)
-        obs_var = np.asarray(vec_normalize.obs_rms.var, dtype=np.float64)
+        obs_mean = np.asarray(vec_normalize.obs_rms.mean, dtype=np.float64)[:obs_dim]
+        obs_var = np.asarray(vec_normalize.obs_rms.var, dtype=np.float64)[:obs_dim]
         obs_epsilon, obs_clip = float(vec_normalize.epsilon), float(vec_normalize.clip_obs)
     else:
         # identity: (obs - 0) / sqrt(1 - 0) and no clipping
@@ -200,7 +204,8 @@ def export_sb3_policy(model, path: str | os.PathLike, vec_normalize=None, metada
         "action_high": np.asarray(model.action_space.high, dtype=np.float64),
     }
     for index, layer in enumerate(linears):
-        arrays[f"layer{index}_weight"] = layer.weight.detach().cpu().numpy().astype(np.float64)
+        weight = layer.weight.detach().cpu().numpy().astype(np.float64)
+        arrays[f"layer{index}_weight"] = weight[:, :obs_dim] if index == 0 else weight
         arrays[f"layer{index}_bias"] = layer.bias.detach().cpu().numpy().astype(np.float64)
     path = Path(path)
     atomic_write_npz(path, arrays)
@@ -242,14 +247,19 @@ class SB3Policy:
         else:
             raise PolicyFileError(f"cannot load SB3 model {str(path)!r}: {'; '.join(errors)}")
         self.metadata.setdefault("algorithm", type(self.model).__name__)
-        self.observation_dim = int(np.prod(self.model.observation_space.shape or (0,)))
+        from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
+
+        host_observations = host_observation_count(self.model)
+        # An asymmetric model's actor takes host observations; its critic's extra inputs are not needed.
+        self._predictor = HostObservationModel(self.model) if host_observations else self.model
+        self.observation_dim = host_observations or int(np.prod(self.model.observation_space.shape or (0,)))
 
     @property
     def privileged(self) -> bool:
         return bool(self.metadata.get("privileged", False))
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
-        return self.model.predict(observation, deterministic=deterministic)
+        return self._predictor.predict(observation, deterministic=deterministic)
 
 
 def load_policy(path: str | os.PathLike):

@@ -105,6 +105,13 @@ class Trainer:
     def __init__(self, config: dict, out_dir: Path, n_envs: int | None = None, seed: int = 0,
                  progress: bool = True, verbose: int = 0):
         self.config = config
+        #: PPO with a critic that sees privileged simulator state (agents/asymmetric.py).
+        self.asymmetric_critic = bool(config.get("asymmetric_critic", False))
+        if self.asymmetric_critic and config["algorithm"] != "PPO":
+            raise TrainingError(f"asymmetric_critic needs PPO, the config says {config['algorithm']!r}")
+        if self.asymmetric_critic and config["env_kwargs"].get("privileged"):
+            raise TrainingError("asymmetric_critic gives the critic privileged observations itself; "
+                                "remove privileged from env_kwargs (the actor must not see them)")
         self.out_dir = Path(out_dir)
         self.n_envs = int(n_envs or config["train"].get("n_envs") or os.cpu_count() or 1)
         if self.n_envs < 1:
@@ -123,6 +130,7 @@ class Trainer:
             "env_kwargs": config["env_kwargs"],
             "eval_env_kwargs": config["eval_env_kwargs"],
             "privileged": bool(config["env_kwargs"].get("privileged", False)),
+            "asymmetric_critic": self.asymmetric_critic,
             "seed": self.seed,
             "config": config,
         }
@@ -132,7 +140,10 @@ class Trainer:
 
         from bh8_gym.agents.env_factory import EnvFactory
 
-        factories = [EnvFactory(self.config["env_id"], self.config["env_kwargs"], seed=None) for _ in range(self.n_envs)]
+        env_kwargs = dict(self.config["env_kwargs"])
+        if self.asymmetric_critic:
+            env_kwargs["privileged"] = True  # for the critic; the policy masks it from the actor
+        factories = [EnvFactory(self.config["env_id"], env_kwargs, seed=None) for _ in range(self.n_envs)]
         if self.n_envs == 1:
             return DummyVecEnv(factories)
         return SubprocVecEnv(factories)
@@ -141,8 +152,14 @@ class Trainer:
         from stable_baselines3 import PPO, SAC
 
         algorithm = {"PPO": PPO, "SAC": SAC}[self.config["algorithm"]]
-        return algorithm("MlpPolicy", env, seed=self.seed, device="cpu", verbose=self.verbose,
-                         tensorboard_log=str(self.out_dir / "tb"), policy_kwargs=_policy_kwargs(self.config),
+        policy, policy_kwargs = "MlpPolicy", _policy_kwargs(self.config)
+        if self.asymmetric_critic:
+            from bh8_gym.agents.asymmetric import AsymmetricActorCriticPolicy
+
+            policy = AsymmetricActorCriticPolicy
+            policy_kwargs["host_observations"] = int(env.get_attr("host_observation_size")[0])
+        return algorithm(policy, env, seed=self.seed, device="cpu", verbose=self.verbose,
+                         tensorboard_log=str(self.out_dir / "tb"), policy_kwargs=policy_kwargs,
                          **self.config["hyperparameters"])
 
     def _resume_model(self, env):

@@ -34,6 +34,7 @@ from bh8_gym.plant import (
     SPREAD_INDEX,
 )
 from bh8_gym.envs.wrappers import ContinuousActions
+from physics_timer import PhysicsTimer
 
 
 def closing_policy(env):
@@ -80,28 +81,6 @@ def raw_pybullet_seconds(env, action, episode_physics_steps: list[int], seed: in
             p.stepSimulation(physicsClientId=client)
         total += time.perf_counter() - start
     return total
-
-
-class PhysicsTimer:
-    """Times the env's own `pybullet.stepSimulation` calls (patched on the module while active)."""
-
-    def __init__(self):
-        self.seconds, self.calls, self._original = 0.0, 0, p.stepSimulation
-
-    def __enter__(self) -> "PhysicsTimer":
-        original, clock = self._original, time.perf_counter
-
-        def timed_step(*args, **kwargs):
-            start = clock()
-            original(*args, **kwargs)
-            self.seconds += clock() - start
-            self.calls += 1
-
-        p.stepSimulation = timed_step
-        return self
-
-    def __exit__(self, *exc) -> None:
-        p.stepSimulation = self._original
 
 
 def run_episodes(env, action, steps: int, seed: int) -> tuple[float, float, list[int], float]:

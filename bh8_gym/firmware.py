@@ -346,31 +346,24 @@ class Firmware:
         self.time = t
 
     def _physics_step(self) -> None:
+        positions, velocities = self._positions, self._velocities
+        origin, last, odometer = self._origin, self._last_positions, self._odometer
+        drive_v, drive_f = self._drive_velocities, self._drive_fractions
+        t, dt = self._physics_time, self._dt
+        for i, channel in enumerate(self._channel_list):
+            position = positions[i]
+            odometer[i] += abs(position - last[i])
+            last[i] = position
+            drive_v[i], drive_f[i] = channel.drive(t, position - origin[i], velocities[i], dt)
         plant = self.plant
-        positions = self._positions
-        velocities = self._velocities
-        origin = self._origin
-        last = self._last_positions
-        odometer = self._odometer
-        drive_v = self._drive_velocities
-        drive_f = self._drive_fractions
-        t = self._physics_time
-        dt = self._dt
-        channels = self._channel_list
-        for i in range(4):
-            p = positions[i]
-            odometer[i] += abs(p - last[i])
-            last[i] = p
-            drive_v[i], drive_f[i] = channels[i].drive(t, p - origin[i], velocities[i], dt)
         plant.set_drives(drive_v, drive_f)
         plant.step()
         self._steps += 1
         self._physics_time = self._time_base + self._steps * dt
-        self._refresh_plant_state()
+        self._positions, self._velocities = plant.motor_state_lists()  # _refresh_plant_state, inlined
 
     def _refresh_plant_state(self) -> None:
-        self._positions = self.plant.motor_positions_list()
-        self._velocities = self.plant.motor_velocities_list()
+        self._positions, self._velocities = self.plant.motor_state_lists()
 
     # ------------------------------------------------------------------ power-up and store
 
@@ -1014,31 +1007,34 @@ class Firmware:
     def _feedback_values(self, layout: LoopLayout) -> list[int]:
         values = self._motor_values
         out = []
+        append = out.append
         strain = None
+        positions, origin = self._positions, self._origin
         lfdpd = self._globals["LFDPD"]
         for m, name in layout.feedback_fields:
-            if name == "LFV":
-                per_sample = int(self._velocities[m - 1] * self._channels[m].period)
-                scaled = int(per_sample / coefficient(values[m]["LFVC"]))
-                out.append(max(-128, min(127, scaled)))
+            if name == "LFAP":
+                position = round(positions[m - 1] - origin[m - 1])
+                append(0 if position < 0 else (65535 if position > 65535 else position))
             elif name == "LFS":
                 if strain is None:
-                    strain = self.plant.strain_gauges()
-                sg = int(strain[m - 1])
-                out.append(255 - sg if values[m]["SGFLIP"] else sg)
-            elif name == "LFAP":
-                out.append(max(0, min(65535, int(round(self._position(m))))))
+                    strain = self.plant.strain_gauges_list()
+                sg = strain[m - 1]
+                append(255 - sg if values[m]["SGFLIP"] else sg)
+            elif name == "LFV":
+                per_sample = int(self._velocities[m - 1] * self._channels[m].period)
+                scaled = int(per_sample / coefficient(values[m]["LFVC"]))
+                append(max(-128, min(127, scaled)))
             elif name == "LFDP":
-                out.append(self._delta_position(m, coefficient(values[m]["LFDPC"]), lfdpd))
+                append(self._delta_position(m, coefficient(values[m]["LFDPC"]), lfdpd))
             elif name == "LFBP":
-                out.append(self._breakaway_position(m))
+                append(self._breakaway_position(m))
             elif name == "LFAIN":
-                out.append(0)
+                append(0)
             else:  # LFT
                 if self.profile == "4.4":
-                    out.append(max(-128, min(127, int(round(self.plant.temperature)))))
+                    append(max(-128, min(127, int(round(self.plant.temperature)))))
                 else:
-                    out.append(self._temperature_tenths())
+                    append(self._temperature_tenths())
         self._update_peak_temperature()
         return out
 

@@ -409,7 +409,7 @@ class HandPlant:
                 targetVelocities=command[1], forces=command[2], positionGains=command[3],
                 velocityGains=self._velocity_gains, physicsClientId=client,
             )
-            self._sent_command = tuple(list(row) for row in command)
+            self._sent_command = tuple(map(list, command))  # copies: the state lists are updated in place
         p.stepSimulation(physicsClientId=client)
         self._read_joints()
         self._update_after_step()
@@ -490,38 +490,39 @@ class HandPlant:
         hold, drive = self._hold, self._drive_worm
         held, latched = state.held, state.latched_torque
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
+        locked_fingers, engaged, drive_capacity = state.locked, state.engaged, state.drive_capacity
         for f, i2, i3 in FINGER_JOINTS:
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
             on = drive_on[f] and velocity != 0.0 and fraction > 0.0
             if not on and held[i2] and held[i3] and not latched[i2] and not latched[i3]:
                 # Unpowered, locked, nothing pressing: last step's hold command stands.
-                state.locked[f] = True
-                state.drive_capacity[f] = 0.0
+                locked_fingers[f] = True
+                drive_capacity[f] = 0.0
                 continue
             closing = velocity > 0.0
             sign = 1.0 if closing else -1.0
-            if state.engaged[f]:
+            if engaged[f]:
                 capacity = fraction * self._finger_capacity
                 # Driving a link into its stop stalls the motor there (PyBullet's limit alone would
                 # let a motor pushing into it drag the other joint).
                 backdriven = False
                 if not on or ((q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open):
                     locked = True
-                elif state.locked[f]:
+                elif locked_fingers[f]:
                     # Stay held while the load (reflected to the inner joint) is more than the motor can push.
                     locked = sign * (tau[i2] + tau[i3] / 3.0) >= capacity
                 else:
                     locked = backdriven = sign * (w[i2] + w[i3]) < -prm.backdrive_speed
-                state.locked[f] = locked
+                locked_fingers[f] = locked
                 if locked:
                     t2, t3 = tau[i2], tau[i3]
-                    squeeze = not state.held[i2] and self._squeeze(f, t2 + t3 / 3.0)
+                    squeeze = not held[i2] and self._squeeze(f, t2 + t3 / 3.0)
                     hold(i2, backdriven, t2 if squeeze and t2 > 0.0 else 0.0)
                     hold(i3, backdriven, t3 if squeeze and t3 > 0.0 else 0.0)
-                    state.drive_capacity[f] = 0.0
+                    drive_capacity[f] = 0.0
                     continue
-                state.drive_capacity[f] = sign * capacity
+                drive_capacity[f] = sign * capacity
                 omega = velocity / INNER_COUNTS_PER_RAD
                 correction = self._half_coupling_rate * (q[i2] - 3.0 * q[i3])
                 # One motor: inner torque + outer torque / 3 within capacity (last step's loads).
@@ -537,18 +538,18 @@ class HandPlant:
                 backdriven = False
                 if not on or (q[i3] >= outer_closed if closing else q[i3] <= outer_open):
                     locked = True
-                elif state.locked[f]:
+                elif locked_fingers[f]:
                     locked = sign * tau[i3] >= capacity
                 else:
                     locked = backdriven = sign * w[i3] < -prm.backdrive_speed
-                state.locked[f] = locked
+                locked_fingers[f] = locked
                 if locked:
-                    squeeze = not state.held[i3] and self._squeeze(f, tau[i3])
+                    squeeze = not held[i3] and self._squeeze(f, tau[i3])
                     hold(i3, backdriven, tau[i3] if squeeze else 0.0)
-                    state.drive_capacity[f] = 0.0
+                    drive_capacity[f] = 0.0
                 else:
                     drive(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
-                    state.drive_capacity[f] = sign * capacity
+                    drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
         friction = prm.spread_friction_torque
@@ -668,40 +669,36 @@ class HandPlant:
 
     # ---------------------------------------------------------------- sensors
     def motor_positions(self) -> np.ndarray:
-        """Motor counts (BH8-262 scale); 0 = the joint against its mechanical open stop."""
-        return np.array(self.motor_positions_list())
-
-    def motor_positions_list(self) -> list[float]:
-        """`motor_positions` as a plain list (the firmware's per-step path).
+        """Motor counts (BH8-262 scale); 0 = the joint against its mechanical open stop.
 
         The encoders sit on the motors: a locked finger joint reads where its worm holds it (its
         link may still flex elastically, or sag within PyBullet's soft hold, without turning the motor).
         """
+        return np.array(self.motor_state_lists()[0])
+
+    def motor_velocities(self) -> np.ndarray:
+        """Motor velocities, counts per second; a locked finger's motor stands still."""
+        return np.array(self.motor_state_lists()[1])
+
+    def motor_state_lists(self) -> tuple[list[float], list[float]]:
+        """(motor positions, motor velocities) as plain lists, as `motor_positions`/`motor_velocities`
+        give them (the firmware's per-step path)."""
         state = self._state
-        q, hold, held = state.positions, state.hold_positions, state.held
+        q, w, hold, held = state.positions, state.velocities, state.hold_positions, state.held
         scale = OUTER_ABS_COUNTS_PER_RAD
-        return [
+        positions = [
             ((hold[1] if held[1] else q[1]) + (hold[2] if held[2] else q[2])) * scale,
             ((hold[4] if held[4] else q[4]) + (hold[5] if held[5] else q[5])) * scale,
             ((hold[6] if held[6] else q[6]) + (hold[7] if held[7] else q[7])) * scale,
             q[0] * SPREAD_COUNTS_PER_RAD,
         ]
-
-    def motor_velocities(self) -> np.ndarray:
-        """Motor velocities, counts per second."""
-        return np.array(self.motor_velocities_list())
-
-    def motor_velocities_list(self) -> list[float]:
-        """`motor_velocities` as a plain list; a locked finger's motor stands still."""
-        state = self._state
-        w, held = state.velocities, state.held
-        scale = OUTER_ABS_COUNTS_PER_RAD
-        return [
+        velocities = [
             ((0.0 if held[1] else w[1]) + (0.0 if held[2] else w[2])) * scale,
             ((0.0 if held[4] else w[4]) + (0.0 if held[5] else w[5])) * scale,
             ((0.0 if held[6] else w[6]) + (0.0 if held[7] else w[7])) * scale,
             w[0] * SPREAD_COUNTS_PER_RAD,
         ]
+        return positions, velocities
 
     def motor_torques(self) -> np.ndarray:
         """Motor-shaft torques of the last step, N·m (signed, + closes)."""
@@ -714,9 +711,13 @@ class HandPlant:
 
     def strain_gauges(self) -> np.ndarray:
         """8-bit strain gauge values (§9.4): offset + gain x outer-joint torque; the spread reads 255."""
-        gain, tau = self.params.strain_gain, self._state.torques
-        values = [min(255, max(0, int(round(self.strain_offsets[f] + gain * tau[OUTER_INDEX[f]])))) for f in range(3)]
-        return np.array(values + [255], dtype=np.int64)
+        return np.array(self.strain_gauges_list(), dtype=np.int64)
+
+    def strain_gauges_list(self) -> list[int]:
+        """`strain_gauges` as a plain list (the firmware's per-cycle path)."""
+        gain, tau, offsets = self.params.strain_gain, self._state.torques, self.strain_offsets
+        values = [round(offset + gain * tau[joint]) for offset, joint in zip(offsets, OUTER_INDEX)]
+        return [255 if v > 255 else (0 if v < 0 else v) for v in values] + [255]
 
     def clutch_engaged(self, finger: int) -> bool:
         """True while finger 1-3's TorqueSwitch couples both joints to the motor."""
@@ -772,14 +773,24 @@ class HandPlant:
 
         `teleport=True` also puts the hand there at once (resets, not motion).
         """
-        position = tuple(float(v) for v in position)
-        orientation = tuple(float(v) for v in orientation)
-        norm = math.sqrt(sum(v * v for v in orientation)) if len(orientation) == 4 else 0.0
-        if len(position) != 3 or not all(math.isfinite(v) for v in position):
+        # Unpacked by hand: the grasp scene moves the wrist every RealTime cycle.
+        try:
+            x, y, z = position
+            x, y, z = float(x), float(y), float(z)
+        except (TypeError, ValueError):
+            raise PlantError(f"wrist position must be 3 finite numbers, got {position!r}") from None
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             raise PlantError(f"wrist position must be 3 finite numbers, got {position!r}")
+        try:
+            qx, qy, qz, qw = orientation
+            qx, qy, qz, qw = float(qx), float(qy), float(qz), float(qw)
+        except (TypeError, ValueError):
+            raise PlantError(f"wrist orientation must be a unit quaternion (x, y, z, w), got {orientation!r}") from None
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
         if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
             raise PlantError(f"wrist orientation must be a unit quaternion (x, y, z, w), got {orientation!r}")
-        orientation = tuple(v / norm for v in orientation)
+        position = (x, y, z)
+        orientation = (qx / norm, qy / norm, qz / norm, qw / norm)
         self._state.wrist_target = (position, orientation)
         p.changeConstraint(
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,

@@ -350,3 +350,73 @@ def test_deploy_refuses_privileged_policy(tmp_path, capsys):
     assert code != 0
     assert "privileged" in capsys.readouterr().err
     assert not log.exists() or "cycle" not in log.read_text()
+
+
+# -- asymmetric critic -------------------------------------------------------------------------
+
+
+def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_path):
+    """PPO with `asymmetric_critic`: the critic reads the env's privileged entries, the actor does
+    not (issue 5: privileged state only for analysis and asymmetric critics). The run is marked
+    deployable, evaluation feeds host observations, and the export keeps only the host inputs."""
+    import torch
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.export import max_action_difference
+    from bh8_gym.agents.policy_file import SB3Policy, export_sb3_policy
+    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+
+    config = load_config(default_config_path("PPO", "BH8Grasp-v0"))
+    config["asymmetric_critic"] = True
+    config["env_kwargs"] = {"object_set": "primitives", "randomize": True}
+    config["eval_env_kwargs"] = {"object_set": "primitives", "randomize": False}
+    config["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=1)
+    config["policy_kwargs"]["net_arch"] = [16, 16]
+    config["eval"].update(freq=64, episodes=1)
+    config["train"]["checkpoint_freq"] = 64
+    out = tmp_path / "run"
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(64)
+    run = json.loads((out / "run.json").read_text())
+    assert run["asymmetric_critic"] is True and run["privileged"] is False
+
+    sb3 = SB3Policy(out / "final_model.zip")
+    host_env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False})
+    full_env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False, "privileged": True})
+    try:
+        host_size = host_env.observation_space.shape[0]
+        assert sb3.observation_dim == host_size < full_env.observation_space.shape[0]
+        full, _ = full_env.reset(seed=3)
+        model = sb3.model
+        altered = full.copy()
+        altered[host_size:] += 5.0  # different object pose and contacts
+        with torch.no_grad():
+            obs = torch.as_tensor(np.stack([full, altered]))
+            actions = model.policy.get_distribution(obs).distribution.mean.numpy()
+            values = model.policy.predict_values(obs).numpy()
+        assert np.allclose(actions[0], actions[1])  # the actor never sees privileged entries
+        assert not np.isclose(values[0, 0], values[1, 0])  # the critic does
+        assert np.allclose(sb3.predict(full[:host_size])[0], model.predict(full, deterministic=True)[0])
+    finally:
+        host_env.close()
+        full_env.close()
+
+    path = export_sb3_policy(sb3.model, tmp_path / "policy.npz", metadata={"privileged": False})
+    exported = NumpyPolicy(path)
+    assert exported.observation_dim == host_size and not exported.privileged
+    assert max_action_difference(sb3, exported, 256) < 1e-5
+    with pytest.raises(ValueError, match="host entries"):
+        sb3.predict(np.zeros(host_size + 1, dtype=np.float32))
+
+
+def test_asymmetric_critic_needs_ppo_and_no_privileged_actor():
+    from bh8_gym.agents.train import Trainer, TrainingError, default_config_path, load_config
+
+    config = load_config(default_config_path("SAC", "BH8Grasp-v0"))
+    config["asymmetric_critic"] = True
+    with pytest.raises(TrainingError, match="needs PPO"):
+        Trainer(config, Path("unused"))
+    config = load_config(default_config_path("PPO", "BH8Grasp-v0"))
+    config["asymmetric_critic"] = True
+    config["env_kwargs"]["privileged"] = True
+    with pytest.raises(TrainingError, match="remove privileged"):
+        Trainer(config, Path("unused"))

@@ -4,7 +4,7 @@ The hand hangs palm-down on an arm above a table with one object (objects.py); t
 with a realistic error (±2 cm, ±15°, palm 1-3 cm above the object). Phases on the host's clock
 (scenes.ArmSchedule): grasp 0.8 s (the policy drives the fingers, the arm is still), lift 0.7 s
 (the wrist rises 10 cm), hold 0.5 s (optionally shaking). At 38400 baud one step is 6.73 ms
-(9-byte control block + 13-byte feedback block + 1 ms), so an episode is 298 steps.
+(9-byte control block + 13-byte feedback block + 1 ms), so an episode is 297 steps.
 
 Default LOOP configuration (the lead's design): motors 1-4; per motor LCV (signed velocity byte,
 LCVC 1: 1/16 count per sample per unit) and LCPG (gain byte: the grasp force, U = LCPG/4 × velocity
