@@ -171,6 +171,10 @@ class BH8LoopEnv(gym.Env):
                 offsets.append(0.0), scales.append(1.0 / TEMPERATURE_SCALE[firmware_profile])
         self._fb_offset = np.array(offsets)
         self._fb_scale = np.array(scales)
+        # Plain-float copies for the per-step observation (see _fill_host).
+        self._fb_offset_list, self._fb_scale_list = self._fb_offset.tolist(), self._fb_scale.tolist()
+        self._action_centres = ((self._action_low_f + self._action_high_f) / 2.0).tolist()
+        self._action_halves = ((self._action_high_f - self._action_low_f) / 2.0).tolist()
         names += [f"prev_{name}{motor}" for motor, name in self.layout.control_fields]
         names.append("episode_fraction")
         names += self._extra_observation_names()
@@ -331,11 +335,9 @@ class BH8LoopEnv(gym.Env):
     def _fill_host(self, out: np.ndarray, values, previous_action: np.ndarray, elapsed: float) -> None:
         # One store of plain floats (cheaper than numpy expressions on ~20 entries); the arithmetic is
         # numpy's float64, term for term, so the float32 observation is bit-identical.
-        host = [(v - offset) * scale for v, offset, scale in zip(values, self._fb_offset.tolist(), self._fb_scale.tolist())]
-        host += [  # wrappers.bytes_to_unit
-            (value - (low + high) / 2.0) / ((high - low) / 2.0)
-            for value, low, high in zip(previous_action.tolist(), self._action_low_f.tolist(), self._action_high_f.tolist())
-        ]
+        host = [(v - offset) * scale for v, offset, scale in zip(values, self._fb_offset_list, self._fb_scale_list)]
+        host += [(value - centre) / half  # wrappers.bytes_to_unit
+                 for value, centre, half in zip(previous_action.tolist(), self._action_centres, self._action_halves)]
         host.append(min(elapsed / self.episode_seconds, 1.0))
         end = len(host)
         out[:end] = host
