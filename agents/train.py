@@ -241,7 +241,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="TOML config (default agents/configs/<algo>_<grasp|reach>.toml)")
     parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: the config's)")
     parser.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: os.cpu_count())")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seeds the envs and the policy: the same seed repeats a run (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -144,8 +144,19 @@ def bench_vector(env_id: str, n_envs: int, steps: int) -> dict:
     for _ in range(steps):
         vec.step(action)
     wall = time.perf_counter() - start
+    worker_peaks_mib = [peak_rss_mib(process.pid) for process in vec.processes]
     vec.close()
-    return {"env": env_id, "n_envs": n_envs, "steps_per_s": n_envs * steps / wall}
+    return {"env": env_id, "n_envs": n_envs, "steps_per_s": n_envs * steps / wall, "worker_peak_mib": worker_peaks_mib}
+
+
+def peak_rss_mib(pid: int) -> float:
+    """A live process's peak resident set (VmHWM), from /proc: the workers are not our children
+    under SB3's forkserver start method, so getrusage cannot see them."""
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmHWM for process {pid}")
 
 
 def profile(env_id: str, steps: int) -> str:
@@ -182,9 +193,10 @@ def main() -> None:
             f"(over in-env physics {r['in_env_overhead_ratio']:.2f})"
         )
         vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200))
-        print(f"{env_id:18s} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total")
+        print(f"{env_id:18s} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total, "
+              f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(f"peak RSS of this process: {peak_kib / 1024:.0f} MiB")
+    print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")
     if args.profile:
         for env_id in ("BH8Grasp-v0",):
             print(profile(env_id, args.steps))
