@@ -749,7 +749,13 @@ class BarrettHand:
         try:
             self._clear_input()  # the rest of an interrupted reply is of no interest now
             self._write(HEADER_EXIT)
-            text = self._drain_quiet()
+            # The answer always ends in a prompt; wait for it rather than for a pause, which a
+            # busy host or a paced hand can produce before the ERR line. Then collect stragglers.
+            try:
+                text = self._read_until(PROMPT, self.timeout, "^C")
+            except HandTimeout:
+                text = b""
+            text += self._drain_quiet()
         except BaseException:
             self._needs_resync = True
             raise

@@ -108,9 +108,11 @@ def test_interactive_ctrl_c_aborts_motion_and_ctrl_d_exits(tmp_path):
             _read_until(fd, b"=> ", 60, seen)
             os.write(fd, b"HI\r")
             _read_until(fd, b"HI\r\n=> ", 60, seen)
+            os.write(fd, b"GFSET MCV 25\r")  # a 3 s close: room for a loaded machine's delays
+            _read_until(fd, b"GFSET MCV 25\r\n=> ", 30, seen)
             os.write(fd, b"GC\r")
-            _read_until(fd, b"GC\r\n", 30, seen)  # the hand echoed it: the close is under way
-            time.sleep(0.3)
+            _read_until(fd, b"GC\r\n", 30, seen)  # readline's echo; the line then goes to the hand
+            time.sleep(0.8)
             os.write(fd, b"\x03")  # Ctrl-C: the tty turns it into SIGINT for `bh8 term`
             _read_until(fd, b"ERR 16384", 30, seen)
             os.write(fd, b"1FGET P\r")
