@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
 from pathlib import Path
 
@@ -119,6 +120,9 @@ def _load_history(path: Path):
 def run_interactive(hand: BarrettHand, history: Path) -> int:
     """Interactive mode: prompt, history, Ctrl-C → ^C to the hand, Ctrl-D exits."""
     readline = _load_history(history)
+    # Ctrl-C must reach us as KeyboardInterrupt even when we were started with SIGINT ignored
+    # (which a parent such as a background job or nohup hands down across exec).
+    previous_sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
     print(f"bh8 term on {hand.port_name}: "
           f"GCL commands (? for help), Ctrl-C aborts a motion, Ctrl-D exits.")
     try:
@@ -149,6 +153,7 @@ def run_interactive(hand: BarrettHand, history: Path) -> int:
                 continue
             _print_reply(reply)
     finally:
+        signal.signal(signal.SIGINT, previous_sigint)
         if readline is not None:
             try:
                 readline.write_history_file(history)

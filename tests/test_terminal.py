@@ -115,6 +115,7 @@ def test_interactive_ctrl_c_aborts_motion_and_ctrl_d_exits(tmp_path):
             time.sleep(0.8)
             os.write(fd, b"\x03")  # Ctrl-C: the tty turns it into SIGINT for `bh8 term`
             _read_until(fd, b"ERR 16384", 30, seen)
+            _read_until(fd, b"=> ", 30, seen, seen.rfind(b"ERR 16384"))  # typing before it races readline
             os.write(fd, b"1FGET P\r")
             _read_until(fd, b"1FGET P\r\n", 30, seen)
             mark = seen.rfind(b"1FGET P\r\n") + len(b"1FGET P\r\n")
