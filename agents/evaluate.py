@@ -13,6 +13,9 @@ Metrics per episode:
   peak strain the largest LFS any finger reported during the episode (8-bit, §6.2.2).
 Strain comes from decoding each step's `info["feedback_block"]` with the env's LoopLayout, i.e.
 the bytes a real hand would send.
+
+`--compare REPORT` pairs this evaluation with another one on the same episodes (same seeds, so the
+same objects and placements) and prints the exact McNemar test of the two success records.
 """
 from __future__ import annotations
 
@@ -181,6 +184,44 @@ def summarize(results: Sequence[EpisodeResult]) -> dict[str, Any]:
     }
 
 
+def paired_comparison(ours: Sequence[bool], theirs: Sequence[bool]) -> dict[str, Any]:
+    """Two policies' successes on the same episodes: the discordant counts and the two-sided exact
+    McNemar p-value (binomial test of "ours only" against "theirs only" at 1/2). Pairing removes the
+    episode-to-episode difficulty that makes two separate confidence intervals wide."""
+    if len(ours) != len(theirs) or not ours:
+        raise ValueError(f"paired comparison needs two equally long, non-empty outcome lists, got "
+                         f"{len(ours)} and {len(theirs)}")
+    only_ours = sum(1 for a, b in zip(ours, theirs) if a and not b)
+    only_theirs = sum(1 for a, b in zip(ours, theirs) if b and not a)
+    both = sum(1 for a, b in zip(ours, theirs) if a and b)
+    discordant = only_ours + only_theirs
+    tail = sum(math.comb(discordant, i) for i in range(min(only_ours, only_theirs) + 1))
+    p_value = min(1.0, 2 * tail / 2 ** discordant)  # exact integers until this one division
+    return {"episodes": len(ours), "only_ours": only_ours, "only_theirs": only_theirs, "both": both,
+            "neither": len(ours) - discordant - both, "mcnemar_p": p_value}
+
+
+def load_paired_outcomes(path: Path, seed: int, results: Sequence[EpisodeResult]) -> list[bool]:
+    """The per-episode successes of another `bh8 eval --out` report (its directory or results.json),
+    checked to be the same episodes: same first seed, same count, same object in each."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "results.json"
+    try:
+        report = json.loads(path.read_text())
+        episodes = report["episodes"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"--compare {str(path)!r}: not a bh8 eval report ({exc})") from None
+    if report.get("seed") != seed or len(episodes) != len(results):
+        raise ValueError(f"--compare {str(path)!r}: {len(episodes)} episodes from seed {report.get('seed')}, "
+                         f"this evaluation has {len(results)} from seed {seed}; compare the same episodes")
+    for index, (theirs, mine) in enumerate(zip(episodes, results)):
+        if theirs["object_name"] != mine.object_name:
+            raise ValueError(f"--compare {str(path)!r}: episode {index} had object {theirs['object_name']!r}, "
+                             f"this evaluation {mine.object_name!r}; compare the same objects")
+    return [bool(e["success"]) for e in episodes]
+
+
 def per_object_table(results: Sequence[EpisodeResult]) -> str:
     """A Markdown table: one row per object, then the total."""
     groups: dict[str, list[EpisodeResult]] = {}
@@ -278,6 +319,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--curve", type=Path, default=None,
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
     parser.add_argument("--gif-episodes", type=int, default=2, help="episodes rendered to the GIF (0: none)")
+    parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
+                        help="another evaluation's --out directory on the same episodes: print the paired "
+                             "comparison (exact McNemar test)")
 
 
 def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_files: list[str] | None,
@@ -322,6 +366,10 @@ def run(args: argparse.Namespace) -> int:
             results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline)
         finally:
             env.close()
+        paired = None
+        if args.compare is not None:
+            theirs = load_paired_outcomes(args.compare, args.seed, results)
+            paired = paired_comparison([r.success for r in results], theirs)
     except (PolicyFileError, FileNotFoundError, ValueError) as exc:
         print(f"bh8 eval: {exc}", file=sys.stderr)
         return 2
@@ -334,12 +382,16 @@ def run(args: argparse.Namespace) -> int:
           f"{summary['success_ci_high']:.3f}); mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; "
           f"peak strain mean {summary['mean_peak_strain']} max {summary['max_peak_strain']}")
     print(table)
+    if paired is not None:
+        print(f"paired with {args.compare} on the same {paired['episodes']} episodes: only this one succeeded "
+              f"{paired['only_ours']}, only that one {paired['only_theirs']}, both {paired['both']}, neither "
+              f"{paired['neither']}; exact McNemar p = {paired['mcnemar_p']:.3g}")
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "table.md").write_text(table + "\n")
         (args.out / "results.json").write_text(json.dumps(
-            {"summary": summary, "episodes": [asdict(r) for r in results], "env_id": env_id,
-             "env_kwargs": env_kwargs, "policy": label}, indent=2, default=str))
+            {"summary": summary, "episodes": [asdict(r) for r in results], "env_id": env_id, "seed": args.seed,
+             "env_kwargs": env_kwargs, "policy": label, "paired": paired}, indent=2, default=str))
         curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
         if curve_dir is not None:
             for folder in (curve_dir, curve_dir.parent):

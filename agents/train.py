@@ -99,6 +99,30 @@ def _policy_kwargs(config: dict) -> dict:
     return kwargs
 
 
+SCHEDULED_HYPERPARAMETERS = ("learning_rate", "clip_range")
+
+
+def _hyperparameters(config: dict) -> dict:
+    """config["hyperparameters"] with rl-zoo's "lin_<start>" strings (learning_rate, clip_range) as
+    schedules that fall linearly from <start> to 0 over the run."""
+    from stable_baselines3.common.utils import LinearSchedule
+
+    hyperparameters = dict(config["hyperparameters"])
+    for name in SCHEDULED_HYPERPARAMETERS:
+        value = hyperparameters.get(name)
+        if not isinstance(value, str):
+            continue
+        try:
+            if not value.startswith("lin_"):
+                raise ValueError
+            start = float(value[len("lin_"):])
+        except ValueError:
+            raise TrainingError(f"hyperparameters.{name} must be a number or 'lin_<start>' "
+                                f"(linear decay to 0), got {value!r}") from None
+        hyperparameters[name] = LinearSchedule(start, 0.0, 1.0)
+    return hyperparameters
+
+
 class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
@@ -160,7 +184,7 @@ class Trainer:
             policy_kwargs["host_observations"] = int(env.get_attr("host_observation_size")[0])
         return algorithm(policy, env, seed=self.seed, device="cpu", verbose=self.verbose,
                          tensorboard_log=str(self.out_dir / "tb"), policy_kwargs=policy_kwargs,
-                         **self.config["hyperparameters"])
+                         **_hyperparameters(self.config))
 
     def _resume_model(self, env):
         from stable_baselines3 import PPO, SAC

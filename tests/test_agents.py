@@ -82,6 +82,34 @@ def test_summary_and_per_object_table():
     assert "1/2 (50%)" in table[3] and "2/3 (67%)" in table[4]
 
 
+def test_paired_comparison_counts_and_exact_mcnemar_reference_values():
+    from bh8_gym.agents.evaluate import paired_comparison
+
+    ours = [True] * 10 + [False] * 5 + [True] * 3
+    theirs = [False] * 10 + [False] * 5 + [True] * 3
+    result = paired_comparison(ours, theirs)
+    assert (result["only_ours"], result["only_theirs"], result["both"], result["neither"]) == (10, 0, 3, 5)
+    assert result["mcnemar_p"] == pytest.approx(2 / 1024)  # 10 discordant pairs all one way
+    assert paired_comparison([True, False], [False, True])["mcnemar_p"] == 1.0
+    assert paired_comparison([True, True], [True, True])["mcnemar_p"] == 1.0  # no discordant pair
+    with pytest.raises(ValueError, match="equally long"):
+        paired_comparison([True], [True, False])
+
+
+@given(st.lists(st.tuples(st.booleans(), st.booleans()), min_size=1, max_size=400))
+def test_paired_comparison_is_symmetric_and_a_probability(pairs):
+    from bh8_gym.agents.evaluate import paired_comparison
+
+    ours, theirs = [a for a, _ in pairs], [b for _, b in pairs]
+    forward, backward = paired_comparison(ours, theirs), paired_comparison(theirs, ours)
+    assert forward["mcnemar_p"] == backward["mcnemar_p"]
+    assert 0.0 < forward["mcnemar_p"] <= 1.0
+    assert forward["only_ours"] + forward["only_theirs"] + forward["both"] + forward["neither"] == len(pairs)
+    # one more episode only we win moves the evidence our way: p never rises when we were ahead
+    if forward["only_ours"] >= forward["only_theirs"]:
+        assert paired_comparison(ours + [True], theirs + [False])["mcnemar_p"] <= forward["mcnemar_p"]
+
+
 # -- numpy policy files ----------------------------------------------------------------------
 
 
@@ -135,6 +163,27 @@ def test_train_writes_checkpoints_and_resume_continues_the_step_count(tmp_path):
     resumed = Trainer(config, out, n_envs=2, seed=0, progress=False).run(512, resume=True)
     assert resumed["num_timesteps"] == 512
     assert [row["timesteps"] for row in read_evaluations(out)] == [128.0, 256.0, 384.0, 512.0]
+
+
+def test_linear_learning_rate_schedule_decays_to_zero_over_the_run(tmp_path):
+    """learning_rate = "lin_1e-3" (rl-zoo's notation) falls linearly to 0 at the last update;
+    any other string is refused naming the value."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.train import Trainer, TrainingError
+
+    config = _tiny_reach_config("PPO")
+    config["hyperparameters"]["learning_rate"] = "lin_1e-3"
+    out = tmp_path / "lin"
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(256)
+    model = PPO.load(out / "final_model.zip", device="cpu")
+    assert model.lr_schedule(1.0) == pytest.approx(1e-3)
+    assert model.lr_schedule(0.25) == pytest.approx(2.5e-4)
+    assert model.policy.optimizer.param_groups[0]["lr"] == pytest.approx(0.0)  # the last update's
+
+    config["hyperparameters"]["learning_rate"] = "cos_1e-3"
+    with pytest.raises(TrainingError, match="cos_1e-3"):
+        Trainer(config, tmp_path / "bad", n_envs=1, progress=False).run(64)
 
 
 def test_sac_checkpoint_keeps_the_replay_buffer_and_resumes(tmp_path):
@@ -275,6 +324,23 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
     low, high = wilson_interval(report["summary"]["successes"], 3)
     assert report["summary"]["success_ci_low"] == pytest.approx(low)
     assert (out / "table.md").read_text().splitlines()[-1].startswith("| **all** | 3 |")
+
+
+def test_eval_compare_pairs_two_reports_on_the_same_episodes(tmp_path, capsys):
+    from bh8_gym.cli import main
+
+    policy = _export_untrained_reach_policy(tmp_path)
+    first, second = tmp_path / "first", tmp_path / "second"
+    common = ["--episodes", "3", "--seed", "7", "--gif-episodes", "0"]
+    assert main(["eval", str(policy), *common, "--out", str(first)]) == 0
+    assert main(["eval", str(policy), *common, "--out", str(second), "--compare", str(first)]) == 0
+    assert "exact McNemar p = 1" in capsys.readouterr().out  # the same policy: no discordant episode
+    paired = json.loads((second / "results.json").read_text())["paired"]
+    assert paired["only_ours"] == paired["only_theirs"] == 0 and paired["episodes"] == 3
+
+    assert main(["eval", str(policy), "--episodes", "3", "--seed", "8", "--gif-episodes", "0",
+                 "--compare", str(first)]) == 2
+    assert "from seed 7" in capsys.readouterr().err
 
 
 def test_training_curve_plot(tmp_path):
