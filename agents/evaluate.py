@@ -201,9 +201,9 @@ def paired_comparison(ours: Sequence[bool], theirs: Sequence[bool]) -> dict[str,
             "neither": len(ours) - discordant - both, "mcnemar_p": p_value}
 
 
-def load_paired_outcomes(path: Path, seed: int, results: Sequence[EpisodeResult]) -> list[bool]:
-    """The per-episode successes of another `bh8 eval --out` report (its directory or results.json),
-    checked to be the same episodes: same first seed, same count, same object in each."""
+def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str, list[dict]]:
+    """(its path, its episodes) of another `bh8 eval --out` report (a directory or results.json),
+    checked before any episode runs to cover the same episodes: same first seed, same count."""
     path = Path(path)
     if path.is_dir():
         path = path / "results.json"
@@ -212,12 +212,17 @@ def load_paired_outcomes(path: Path, seed: int, results: Sequence[EpisodeResult]
         episodes = report["episodes"]
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"--compare {str(path)!r}: not a bh8 eval report ({exc})") from None
-    if report.get("seed") != seed or len(episodes) != len(results):
+    if report.get("seed") != seed or len(episodes) != n_episodes:
         raise ValueError(f"--compare {str(path)!r}: {len(episodes)} episodes from seed {report.get('seed')}, "
-                         f"this evaluation has {len(results)} from seed {seed}; compare the same episodes")
+                         f"this evaluation has {n_episodes} from seed {seed}; compare the same episodes")
+    return str(path), episodes
+
+
+def paired_outcomes(path: str, episodes: Sequence[dict], results: Sequence[EpisodeResult]) -> list[bool]:
+    """The other report's per-episode successes, checked to have had the same object in each episode."""
     for index, (theirs, mine) in enumerate(zip(episodes, results)):
         if theirs["object_name"] != mine.object_name:
-            raise ValueError(f"--compare {str(path)!r}: episode {index} had object {theirs['object_name']!r}, "
+            raise ValueError(f"--compare {path!r}: episode {index} had object {theirs['object_name']!r}, "
                              f"this evaluation {mine.object_name!r}; compare the same objects")
     return [bool(e["success"]) for e in episodes]
 
@@ -357,6 +362,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
         env_kwargs = evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), args.objects, args.object_files,
                                            args.randomize)
+        comparison = (None if args.compare is None
+                      else load_comparison_report(args.compare, args.seed, args.episodes))
         env = make_env(env_id, env_kwargs)
         if args.baseline is not None:
             from bh8_gym.agents.baselines import make_baseline
@@ -367,8 +374,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             env.close()
         paired = None
-        if args.compare is not None:
-            theirs = load_paired_outcomes(args.compare, args.seed, results)
+        if comparison is not None:
+            theirs = paired_outcomes(*comparison, results)
             paired = paired_comparison([r.success for r in results], theirs)
     except (PolicyFileError, FileNotFoundError, ValueError) as exc:
         print(f"bh8 eval: {exc}", file=sys.stderr)
