@@ -1,7 +1,7 @@
 """Benchmark the environments: env steps/s, simulated s per wall s, peak memory, vectorised envs,
 the overhead against raw PyBullet stepping of the same scene, and a cProfile of the step path.
 
-    python benchmarks/bench_envs.py [--steps 3000] [--envs 2] [--profile]
+    python benchmarks/bench_envs.py [--steps 3000] [--repeats 3] [--envs 2] [--profile]
 
 Overhead ratio = wall time of the env steps / wall time of bare `p.stepSimulation` calls over the
 same simulated time in the same world: the same episodes (same seeds, so the same objects and
@@ -9,9 +9,13 @@ placements, physics steps per episode as the env run took), the hand's joints un
 velocity motors closing the fingers at the benchmark action's speed with the drive's full torque
 (so the fingers reach the object and the contacts load the solver as in the env run). Resets are
 excluded from both. That is what the drive-train model, the HCTL emulation, the firmware's byte
-handling and the env add on top of PyBullet itself. As a cross-check the env run also times its
-own `p.stepSimulation` calls ("in-env physics"): env wall / in-env physics is the same ratio
-measured on the env's very states (the raw baseline's arm stays still; the env's lifts).
+handling and the env add on top of PyBullet itself. As a cross-check the env's steps are run again
+with PyBullet's calls timed (the same states: the env is deterministic): that run's wall / its own
+`p.stepSimulation` time is the same ratio measured on the env's very states (the raw baseline's
+arm stays still; the env's lifts; the timer adds about 0.2 µs per PyBullet call, ~1 %), and the env's other PyBullet calls (joint reads every physics
+step, motor commands, the reward's pose and contact queries) give the ratio the env would have if
+all of our Python took no time. Each measurement is repeated (`--repeats` rounds, interleaved)
+and reported as median (min-max): on a shared 2-core machine single runs scatter by ±15 %.
 """
 from __future__ import annotations
 
@@ -108,29 +112,38 @@ def run_episodes(env, action, steps: int, seed: int) -> tuple[float, float, list
     return wall, sim_time, episode_steps, reset_wall / max(len(episode_steps) - 1, 1)
 
 
-def bench_single(env_id: str, steps: int, seed: int = 0) -> dict:
+def bench_single(env_id: str, steps: int, repeats: int, seed: int = 0) -> dict:
+    """`repeats` rounds of: the env's steps, raw stepping of the same episodes, the env's steps again
+    with PyBullet's calls timed (deterministic: the very same states). Ratios per round."""
     env = gym.make(env_id).unwrapped
     action = closing_policy(env)
-    wall, sim_time, episode_steps, reset_seconds = run_episodes(env, action, steps, seed)
-    physics_steps = sum(episode_steps)
-    raw = raw_pybullet_seconds(env, action, episode_steps, seed)
-    with PhysicsTimer() as physics:
-        timed_wall, _, _, _ = run_episodes(env, action, steps, seed)
+    rounds = []
+    for _ in range(repeats):
+        wall, sim_time, episode_steps, reset_seconds = run_episodes(env, action, steps, seed)
+        physics_steps = sum(episode_steps)
+        raw = raw_pybullet_seconds(env, action, episode_steps, seed)
+        with PhysicsTimer() as timer:
+            timed_wall, _, _, _ = run_episodes(env, action, steps, seed)
+        rounds.append({
+            "steps_per_s": steps / wall,
+            "sim_s_per_wall_s": sim_time / wall,
+            "reset_ms": 1e3 * reset_seconds,
+            "raw_pybullet_step_us": 1e6 * raw / physics_steps,
+            "in_env_physics_step_us": 1e6 * timer.seconds / timer.calls,
+            "other_pybullet_us": 1e6 * timer.other_seconds / timer.calls,
+            "env_per_physics_step_us": 1e6 * wall / physics_steps,
+            "overhead_ratio": wall / raw,
+            "in_env_overhead_ratio": timed_wall / timer.seconds,  # one run: no drift between runs
+            # What the env would cost if our Python took no time: its PyBullet calls alone.
+            "pybullet_calls_ratio": (timer.seconds + timer.other_seconds) / timer.seconds,
+        })
+    result = {"env": env_id, "cycle_ms": 1e3 * env.cycle_seconds, "physics_dt_ms": 1e3 * env.plant.dt,
+              "physics_steps_per_env_step": physics_steps / steps, "rounds": rounds}
     env.close()
-    return {
-        "env": env_id,
-        "steps_per_s": steps / wall,
-        "sim_s_per_wall_s": sim_time / wall,
-        "reset_ms": 1e3 * reset_seconds,
-        "cycle_ms": 1e3 * env.cycle_seconds,
-        "physics_dt_ms": 1e3 * env.plant.dt,
-        "physics_steps_per_env_step": physics_steps / steps,
-        "raw_pybullet_step_us": 1e6 * raw / physics_steps,
-        "in_env_physics_step_us": 1e6 * physics.seconds / physics.calls,
-        "env_per_physics_step_us": 1e6 * wall / physics_steps,
-        "overhead_ratio": wall / raw,
-        "in_env_overhead_ratio": timed_wall / physics.seconds,
-    }
+    for key in rounds[0]:
+        values = sorted(r[key] for r in rounds)
+        result[key] = (values[len(values) // 2], values[0], values[-1])  # median, min, max
+    return result
 
 
 def bench_vector(env_id: str, n_envs: int, steps: int) -> dict:
@@ -180,20 +193,30 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--envs", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3, help="rounds per env (the ratios' spread is the machine's noise)")
     parser.add_argument("--profile", action="store_true")
     args = parser.parse_args()
     for env_id in ("BH8FingerReach-v0", "BH8Grasp-v0"):
-        r = bench_single(env_id, args.steps)
+        r = bench_single(env_id, args.steps, args.repeats)
+
+        def fmt(key, spec, scale=1.0):
+            median, low, high = (scale * v for v in r[key])
+            return f"{median:{spec}} ({low:{spec}}-{high:{spec}})"
+
         print(
-            f"{env_id:18s} 1 process: {r['steps_per_s']:7.0f} env steps/s, {r['sim_s_per_wall_s']:5.2f} sim s/wall s, "
-            f"cycle {r['cycle_ms']:.2f} ms = {r['physics_steps_per_env_step']:.2f} physics steps of {r['physics_dt_ms']:.1f} ms, "
-            f"reset {r['reset_ms']:.2f} ms\n"
-            f"{'':18s} physics step: raw PyBullet {r['raw_pybullet_step_us']:.0f} us, in the env {r['in_env_physics_step_us']:.0f} us; "
-            f"env {r['env_per_physics_step_us']:.0f} us per physics step -> overhead ratio {r['overhead_ratio']:.2f} "
-            f"(over in-env physics {r['in_env_overhead_ratio']:.2f})"
+            f"{env_id} 1 process, median (min-max) of {args.repeats} rounds:\n"
+            f"  {fmt('steps_per_s', '.0f')} env steps/s, {fmt('sim_s_per_wall_s', '.2f')} sim s/wall s; "
+            f"cycle {r['cycle_ms']:.2f} ms = {r['physics_steps_per_env_step']:.2f} physics steps of "
+            f"{r['physics_dt_ms']:.1f} ms; reset {fmt('reset_ms', '.2f')} ms\n"
+            f"  per physics step: raw PyBullet {fmt('raw_pybullet_step_us', '.0f')} us; in the env "
+            f"{fmt('in_env_physics_step_us', '.0f')} us stepSimulation + {fmt('other_pybullet_us', '.1f')} us other "
+            f"PyBullet calls, {fmt('env_per_physics_step_us', '.0f')} us in all\n"
+            f"  overhead ratio vs raw PyBullet {fmt('overhead_ratio', '.2f')}; vs the env's own stepSimulation "
+            f"{fmt('in_env_overhead_ratio', '.2f')}, of which its other PyBullet calls alone "
+            f"{fmt('pybullet_calls_ratio', '.2f')}"
         )
         vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200))
-        print(f"{env_id:18s} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total, "
+        print(f"{env_id} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total, "
               f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")

@@ -1,7 +1,9 @@
 """Plant speed: simulated seconds per wall second with 4 motors driven and one object in contact,
 against raw PyBullet stepping of the same scene (no drive-train logic; the joint motors keep the
-plant's last command), and physics steps per second. The plant's own `p.stepSimulation` calls are
-timed too: plant wall / those is the drive-train overhead measured on the plant's very states.
+plant's last command), and physics steps per second. The same steps are run again with the plant's
+PyBullet calls timed: plant wall / its `p.stepSimulation` time is the drive-train overhead measured
+on the plant's very states, and its other PyBullet calls (joint reads, motor commands) are the part
+of that overhead no Python code can remove.
 
 Run: /work/venv/bin/python benchmarks/bench_plant.py [--seconds 5]
 """
@@ -27,20 +29,28 @@ def scene() -> HandPlant:
     return plant
 
 
+def run_plant(plant: HandPlant, steps: int) -> float:
+    """Wall seconds of `steps` plant steps, the drives alternating so the fingers keep working."""
+    start = time.perf_counter()
+    for k in range(steps):
+        if k % 250 == 0:
+            direction = 1.0 if (k // 250) % 2 == 0 else -0.2
+            plant.set_drives([24_414.0 * direction] * 3 + [2_000.0 * direction], [1.0, 1.0, 1.0, 0.5])
+        plant.step()
+    return time.perf_counter() - start
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per measurement")
     args = parser.parse_args()
     plant = scene()
     steps = int(args.seconds / plant.dt)
+    start_state = plant.save_state()
+    plant_wall = run_plant(plant, steps)
+    plant.restore_state(start_state)  # the same steps again, PyBullet's calls timed (deterministic)
     with PhysicsTimer() as physics:
-        start = time.perf_counter()
-        for k in range(steps):
-            if k % 250 == 0:  # alternate the drives so the fingers keep working
-                direction = 1.0 if (k // 250) % 2 == 0 else -0.2
-                plant.set_drives([24_414.0 * direction] * 3 + [2_000.0 * direction], [1.0, 1.0, 1.0, 0.5])
-            plant.step()
-        plant_wall = time.perf_counter() - start
+        run_plant(plant, steps)
     contacts = len(plant.contacts(plant.objects[0], plant.hand_id))
     client = plant.client
     start = time.perf_counter()
@@ -52,7 +62,9 @@ def main() -> None:
     print(f"plant:   {steps / plant_wall:8.0f} steps/s  {args.seconds / plant_wall:6.1f} simulated s per wall s")
     print(f"raw:     {steps / raw_wall:8.0f} steps/s  {args.seconds / raw_wall:6.1f} simulated s per wall s")
     print(f"plant overhead over raw stepping: {plant_wall / raw_wall:.2f}x; over its own physics calls "
-          f"({1e6 * physics.seconds / physics.calls:.0f} us each): {plant_wall / physics.seconds:.2f}x")
+          f"({1e6 * physics.seconds / physics.calls:.0f} us each): {plant_wall / physics.seconds:.2f}x; its other "
+          f"PyBullet calls (joint reads, motor commands, {1e6 * physics.other_seconds / physics.calls:.1f} us per step) "
+          f"alone would make that {(physics.seconds + physics.other_seconds) / physics.seconds:.2f}x")
 
 
 if __name__ == "__main__":
