@@ -11,7 +11,8 @@ The sequence is what the environment does to its simulated firmware, sent throug
    (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
    block is decoded by the client's LoopLayout and turned into the next observation by the env's
    observation builder (the same code the policy was trained on);
-3. stop on the cycle budget, Ctrl-C, a strain above `--max-strain` or a temperature above
+3. stop on the cycle budget, Ctrl-C, SIGTERM or SIGHUP (at the next cycle boundary: a block is
+   never cut in half), a strain above `--max-strain` or a temperature above
    `--max-temperature`: one last block with zero velocity, ^C to leave LOOP, then the exit
    action (`--on-exit`, default "GT": finger power off; the worm drives hold the grasp unpowered,
    SPEC.md §1, so nothing drops and nothing heats; "T": every motor off, the spread becomes
@@ -25,8 +26,11 @@ Policies trained with privileged (simulation-only) observations are refused.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -104,6 +108,7 @@ class Deployment:
         self.clock = clock
         self.layout = None
         self.cycles = 0
+        self._stop_request = None  # set by a signal handler: why to stop at the next cycle boundary
 
     def _log(self, record: dict) -> None:
         self.log_file.write(json.dumps(record) + "\n")
@@ -148,33 +153,56 @@ class Deployment:
         previous = np.zeros(len(self._stop_values), dtype=np.int64)
         base, hand, on_cycles = self.base, self.hand, self.clock == "cycles"
         processing_time = base.nominal_processing_time
-        try:
-            # Like the env's reset: an "A" block (no control data) starts the host's clock and
-            # gives the first observation, at the clock's reading after that block.
-            start = time.monotonic()
-            feedback = self._exchange((), header=b"A")
-            elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
-                       else time.monotonic() - start)
-            observation = base.observation_from_feedback(feedback.values, previous, elapsed)
-            while self.cycles <= cycles:  # the "A" block was cycle 0
-                self._check_limits(feedback)
-                unit, _ = self.policy.predict(observation, deterministic=True)
-                np.clip(np.rint(self._center + self._half * np.clip(unit, -1.0, 1.0)),
-                        self._clamp_low, self._clamp_high, out=self._action)
-                previous[:] = self._action
-                feedback = self._exchange(previous.tolist())
-                elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
+        with self._stop_on_signals():
+            try:
+                # Like the env's reset: an "A" block (no control data) starts the host's clock and
+                # gives the first observation, at the clock's reading after that block.
+                start = time.monotonic()
+                feedback = self._exchange((), header=b"A")
+                elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
                            else time.monotonic() - start)
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed)
-            self._check_limits(feedback)
-        except SafetyStop as stop:
-            reason = f"safety stop: {stop}"
-        except KeyboardInterrupt:
-            reason = "interrupted (Ctrl-C)"
-        finally:
-            self.finish()
+                while self.cycles <= cycles and self._stop_request is None:  # the "A" block was cycle 0
+                    self._check_limits(feedback)
+                    unit, _ = self.policy.predict(observation, deterministic=True)
+                    np.clip(np.rint(self._center + self._half * np.clip(unit, -1.0, 1.0)),
+                            self._clamp_low, self._clamp_high, out=self._action)
+                    previous[:] = self._action
+                    feedback = self._exchange(previous.tolist())
+                    elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
+                               else time.monotonic() - start)
+                    observation = base.observation_from_feedback(feedback.values, previous, elapsed)
+                self._check_limits(feedback)
+                if self._stop_request is not None:
+                    reason = self._stop_request
+            except SafetyStop as stop:
+                reason = f"safety stop: {stop}"
+            except KeyboardInterrupt:
+                reason = "interrupted (Ctrl-C)"
+            finally:
+                self.finish()
         self._log({"event": "stop", "reason": reason, "cycles": self.cycles, "t": time.monotonic()})
         return reason
+
+    @contextlib.contextmanager
+    def _stop_on_signals(self):
+        """While running: SIGTERM and SIGHUP (a lab's supervisor, `kill`, a closed terminal) ask for
+        the same safe stop as Ctrl-C, taken at the next cycle boundary so the hand never sees half a
+        block. Signal handlers can only be set from the main thread; elsewhere nothing changes."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def request_stop(signum, _frame):
+            if self._stop_request is None:
+                self._stop_request = f"terminated ({signal.Signals(signum).name})"
+
+        previous = {signum: signal.signal(signum, request_stop) for signum in (signal.SIGTERM, signal.SIGHUP)}
+        try:
+            yield
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
 
     def finish(self) -> None:
         """Zero velocity, leave LOOP, then the exit action (also after Ctrl-C or a limit)."""

@@ -6,6 +6,10 @@ Kept fast: a few hundred env steps of training on BH8FingerReach-v0, a few episo
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -405,6 +409,37 @@ def test_deploy_runs_cycles_on_bh8sim_and_logs_decodable_blocks(tmp_path, capsys
             assert max(abs(v) for v in velocities) <= 100  # the default velocity clamp
     assert bytes.fromhex(blocks[-1]["control"]) == layout.encode_control([0] * len(layout.control_fields))
     assert records[-1]["event"] == "stop" and records[-1]["reason"] == "done"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_deploy_stops_safely_on_a_termination_signal(tmp_path, signum):
+    """`kill` (or a closed terminal) mid-run is a safe stop like Ctrl-C, not a hand left in LOOP with
+    its last velocities: the zero-velocity block, ^C, the exit action, a logged reason, exit code 3."""
+    policy = _export_untrained_reach_policy(tmp_path)
+    log = tmp_path / "deploy.jsonl"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "bh8_gym.cli", "deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy),
+         "--cycles", "10000000", "--log", str(log), "--clock", "cycles"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 60.0
+        while not (log.exists() and log.read_text().count('"cycle"') > 5):  # running policy cycles
+            assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+            time.sleep(0.05)
+        process.send_signal(signum)
+        out, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 3, err
+    name = signal.Signals(signum).name
+    assert f"stopped: terminated ({name})" in out
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert records[-1]["event"] == "stop" and records[-1]["reason"] == f"terminated ({name})"
+    assert records[-2] == {**records[-2], "event": "command", "line": "GT"}  # the default exit action
+    last_block = [r for r in records if "cycle" in r][-1]
+    control = bytes.fromhex(last_block["control"])
+    assert control[0:1] == b"C" and set(control[1:]) == {0}  # LCV 0, LCPG 0: no motion, no torque
 
 
 def test_deploy_refuses_privileged_policy(tmp_path, capsys):
