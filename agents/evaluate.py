@@ -121,6 +121,8 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
 
     `env`: a single env (see env_factory.make_env). `baseline`: an object with
     `run_episode(env, seed) -> (return, length, info)` for baselines that use supervisory GCL.
+    With `deterministic=False` a policy's exploration noise is drawn anew for every episode
+    (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them).
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
@@ -136,6 +138,8 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
             obs, info = env.reset(seed=seed + episode)
             if baseline is not None:
                 baseline.reset(env)
+            elif not deterministic and hasattr(policy, "reset_noise"):
+                policy.reset_noise()
             total, length, done, extra_seconds = 0.0, 0, False, 0.0
             while not done:
                 if baseline is not None:
@@ -293,6 +297,8 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
             obs, info = env.reset(seed=seed + episode)
             if baseline is not None:
                 baseline.reset(env)
+            elif not deterministic and hasattr(policy, "reset_noise"):
+                policy.reset_noise()
             frames.append(env.render())
             done, step = False, 0
             while not done:

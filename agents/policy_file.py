@@ -92,8 +92,12 @@ class NumpyPolicy:
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
         """The deterministic action for one observation (shape (obs_dim,)) or a batch (n, obs_dim).
 
-        Returns (action, None) like SB3's `predict`, so evaluation code treats both alike.
+        Returns (action, None) like SB3's `predict`, so evaluation code treats both alike. An
+        exported file has no exploration noise: `deterministic=False` is refused, not ignored.
         """
+        if not deterministic:
+            raise ValueError(f"{str(self.path)!r} is an exported (deterministic) policy; deterministic=False "
+                             "needs the SB3 .zip it was exported from")
         obs = np.asarray(observation, dtype=np.float64)
         single = obs.ndim == 1
         batch = obs.reshape(1, -1) if single else obs
@@ -260,6 +264,13 @@ class SB3Policy:
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = True):
         return self._predictor.predict(observation, deterministic=deterministic)
+
+    def reset_noise(self) -> None:
+        """Draw new exploration noise for `deterministic=False`. Needed once per episode with gSDE
+        (use_sde): SB3 draws its exploration matrix only here, so without a new draw every
+        stochastic episode repeats one fixed perturbation of the policy."""
+        if getattr(self.model, "use_sde", False):
+            self.model.policy.reset_noise()
 
 
 def load_policy(path: str | os.PathLike):
