@@ -3,6 +3,9 @@ the overhead against raw PyBullet stepping of the same scene, and a cProfile of 
 
     python benchmarks/bench_envs.py [--steps 3000] [--repeats 3] [--envs 2] [--profile]
 
+With panda-gym installed (`pip install panda-gym`; not a dependency) its PandaReach-v3 is measured
+the same way, side by side.
+
 Overhead ratio = wall time of the env steps / wall time of bare `p.stepSimulation` calls over the
 same simulated time in the same world: the same episodes (same seeds, so the same objects and
 placements, physics steps per episode as the env run took), the hand's joints under PyBullet's own
@@ -146,6 +149,40 @@ def bench_single(env_id: str, steps: int, repeats: int, seed: int = 0) -> dict:
     return result
 
 
+def bench_panda_gym(steps: int, repeats: int) -> dict | None:
+    """panda-gym's PandaReach-v3 measured the same way as ours (its own `stepSimulation` and other
+    PyBullet calls timed in the same run), for side-by-side figures; None without panda-gym."""
+    try:
+        import panda_gym
+    except ImportError:
+        return None
+    env = gym.make("PandaReach-v3")
+    action = np.full(env.action_space.shape, 0.3, dtype=np.float32)
+
+    def run() -> float:
+        env.reset(seed=0)
+        start = time.perf_counter()
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                env.reset()
+        return time.perf_counter() - start
+
+    rounds = []
+    for _ in range(repeats):
+        wall = run()
+        with PhysicsTimer() as timer:
+            timed_wall = run()
+        rounds.append((steps / wall, timer.calls / steps, 1e6 * timer.seconds / timer.calls, timed_wall / timer.seconds,
+                       (timer.seconds + timer.other_seconds) / timer.seconds))
+    env.close()
+    rounds.sort(key=lambda r: r[3])
+    steps_per_s, physics_per_step, physics_us, ratio, calls_ratio = rounds[len(rounds) // 2]
+    return {"version": panda_gym.__version__, "steps_per_s": steps_per_s, "physics_steps_per_env_step": physics_per_step,
+            "physics_step_us": physics_us, "in_env_overhead_ratio": ratio, "pybullet_calls_ratio": calls_ratio,
+            "ratio_range": (rounds[0][3], rounds[-1][3])}
+
+
 def bench_vector(env_id: str, n_envs: int, steps: int) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
@@ -220,6 +257,16 @@ def main() -> None:
               f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")
+    panda = bench_panda_gym(args.steps, args.repeats)
+    if panda is None:
+        print("PandaReach-v3: panda-gym is not installed (pip install panda-gym) - comparison skipped")
+    else:
+        low, high = panda["ratio_range"]
+        print(f"PandaReach-v3 (panda-gym {panda['version']}), median round of {args.repeats}: "
+              f"{panda['steps_per_s']:.0f} env steps/s, {panda['physics_steps_per_env_step']:.0f} physics steps "
+              f"of {panda['physics_step_us']:.0f} us per env step; overhead ratio vs its own stepSimulation "
+              f"{panda['in_env_overhead_ratio']:.2f} ({low:.2f}-{high:.2f}), of which its other PyBullet calls alone "
+              f"{panda['pybullet_calls_ratio']:.2f}")
     if args.profile:
         for env_id in ("BH8Grasp-v0",):
             print(profile(env_id, args.steps))
