@@ -355,12 +355,9 @@ class Firmware:
             odometer[i] += abs(position - last[i])
             last[i] = position
             drive_v[i], drive_f[i] = channel.drive(t, position - origin[i], velocities[i], dt)
-        plant = self.plant
-        plant.set_drives(drive_v, drive_f)
-        plant.step()
+        self._positions, self._velocities = self.plant.step_with_drives(drive_v, drive_f)
         self._steps += 1
         self._physics_time = self._time_base + self._steps * dt
-        self._positions, self._velocities = plant.motor_state_lists()  # _refresh_plant_state, inlined
 
     def _refresh_plant_state(self) -> None:
         self._positions, self._velocities = self.plant.motor_state_lists()
@@ -935,6 +932,13 @@ class Firmware:
                 channel.velocity(0.0, self._loop_gain[m], loop=True)
             self._status[m] = 0
         self._loop_velocity_scale = {m: coefficient(values[m]["LCVC"]) / VELOCITY_SCALE for m in layout.motors}
+        # Fixed while in LOOP (parameters change only in supervisory mode): looked up once, not per cycle.
+        self._seconds_per_byte = BITS_PER_BYTE / self.baud
+        self._feedback_plan = [
+            (name, m, self._channels[m].period, values[m]["SGFLIP"], coefficient(values[m]["LFVC"]),
+             coefficient(values[m]["LFDPC"])) if m is not None else (name, m, 0.0, 0, 1, 1)  # LFT: the hand's
+            for m, name in layout.feedback_fields
+        ]
         self._output += b"*"
         if self.loop_entry_hook is not None:
             self.loop_entry_hook(self, layout)
@@ -973,14 +977,14 @@ class Firmware:
             self.cycle_hook(self)
         layout = self._loop_layout
         header = block[0]
-        seconds_per_byte = BITS_PER_BYTE / self.baud
+        seconds_per_byte = self._seconds_per_byte
         feedback_size = layout.feedback_size if header in HEADERS_WITH_FEEDBACK else 1
         yield self.time + len(block) * seconds_per_byte
         if len(block) > 1:
             self._apply_control(layout, layout.decode_control(block[1:]))
         yield self.time + self.processing_time
         if header in HEADERS_WITH_FEEDBACK:
-            self._output += layout.encode_feedback(self._feedback_values(layout))
+            self._output += layout.encode_feedback(self._feedback_values())
         else:
             self._output += b"*"
         yield self.time + feedback_size * seconds_per_byte
@@ -1004,14 +1008,13 @@ class Firmware:
             else:
                 self._channels[m].velocity(velocity[m], gain[m], loop=True)
 
-    def _feedback_values(self, layout: LoopLayout) -> list[int]:
-        values = self._motor_values
+    def _feedback_values(self) -> list[int]:
         out = []
         append = out.append
         strain = None
-        positions, origin = self._positions, self._origin
+        positions, origin, velocities = self._positions, self._origin, self._velocities
         lfdpd = self._globals["LFDPD"]
-        for m, name in layout.feedback_fields:
+        for name, m, period, sgflip, lfvc, lfdpc in self._feedback_plan:
             if name == "LFAP":
                 position = round(positions[m - 1] - origin[m - 1])
                 append(0 if position < 0 else (65535 if position > 65535 else position))
@@ -1019,13 +1022,13 @@ class Firmware:
                 if strain is None:
                     strain = self.plant.strain_gauges_list()
                 sg = strain[m - 1]
-                append(255 - sg if values[m]["SGFLIP"] else sg)
+                append(255 - sg if sgflip else sg)
             elif name == "LFV":
-                per_sample = int(self._velocities[m - 1] * self._channels[m].period)
-                scaled = int(per_sample / coefficient(values[m]["LFVC"]))
-                append(max(-128, min(127, scaled)))
+                per_sample = int(velocities[m - 1] * period)
+                scaled = int(per_sample / lfvc)
+                append(-128 if scaled < -128 else (127 if scaled > 127 else scaled))
             elif name == "LFDP":
-                append(self._delta_position(m, coefficient(values[m]["LFDPC"]), lfdpd))
+                append(self._delta_position(m, lfdpc, lfdpd))
             elif name == "LFBP":
                 append(self._breakaway_position(m))
             elif name == "LFAIN":

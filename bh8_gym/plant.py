@@ -375,9 +375,23 @@ class HandPlant:
         self._state.drive_fraction[index] = 0.0
 
     def set_drives(self, velocities, torque_fractions) -> None:
-        """All four motors at once (fast path). A NaN torque fraction turns that motor off."""
+        """All four motors at once. A NaN torque fraction turns that motor off."""
         if len(velocities) != 4 or len(torque_fractions) != 4:
             raise PlantError(f"set_drives needs 4 velocities and 4 torque fractions, got {velocities!r}, {torque_fractions!r}")
+        for index in 0, 1, 2, 3:
+            velocity, fraction = velocities[index], torque_fractions[index]
+            if fraction == fraction and (not 0.0 <= fraction <= 1.0 or not math.isfinite(velocity)):
+                raise PlantError(f"motor {index + 1}: velocity {velocity!r} must be finite and torque fraction {fraction!r} in [0, 1]")
+        self._store_drives([float(v) for v in velocities], [float(f) for f in torque_fractions])
+
+    def step_with_drives(self, velocities: list[float], torque_fractions: list[float]) -> tuple[list[float], list[float]]:
+        """The firmware's per-physics-step path: `set_drives` without its checks (the HCTL emulation
+        gives finite floats, fractions in [0, 1] or NaN for off), `step`, then `motor_state_lists()`."""
+        self._store_drives(velocities, torque_fractions)
+        self.step()
+        return self.motor_state_lists()
+
+    def _store_drives(self, velocities: list[float], torque_fractions: list[float]) -> None:
         state, limit = self._state, self._speed_limit
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         for index in 0, 1, 2, 3:
@@ -385,14 +399,11 @@ class HandPlant:
             if fraction != fraction:  # NaN: off
                 drive_on[index] = False
                 drive_velocity[index] = drive_fraction[index] = 0.0
-                continue
-            velocity = velocities[index]
-            # (velocity - velocity) is NaN for an infinite or NaN velocity
-            if not (0.0 <= fraction <= 1.0) or velocity - velocity != 0.0:
-                raise PlantError(f"motor {index + 1}: velocity {velocity!r} must be finite and torque fraction {fraction!r} in [0, 1]")
-            drive_velocity[index] = limit if velocity > limit else (-limit if velocity < -limit else float(velocity))
-            drive_fraction[index] = float(fraction)
-            drive_on[index] = True
+            else:
+                velocity = velocities[index]
+                drive_velocity[index] = limit if velocity > limit else (-limit if velocity < -limit else velocity)
+                drive_fraction[index] = fraction
+                drive_on[index] = True
 
     # ---------------------------------------------------------------- stepping
     def step(self) -> None:

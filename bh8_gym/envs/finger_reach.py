@@ -80,10 +80,11 @@ class BH8FingerReachEnv(BH8LoopEnv):
             render_size=render_size,
         )
         fields = self.layout.feedback_fields
-        self._lfap_index = np.array([fields.index((m, "LFAP")) for m in self.motors])
-        self._full_range = np.array([FULL_RANGE_COUNTS[m] for m in self.motors])
-        self._tolerances = np.array([self.tolerance.spread if m == 4 else self.tolerance.finger for m in self.motors])
-        self.targets = np.zeros(len(self.motors))
+        # Plain lists: a handful of values per step, cheaper in Python than in numpy.
+        self._lfap_index = [fields.index((m, "LFAP")) for m in self.motors]
+        self._full_range = [float(FULL_RANGE_COUNTS[m]) for m in self.motors]
+        self._tolerances = [self.tolerance.spread if m == 4 else self.tolerance.finger for m in self.motors]
+        self._targets = [0.0] * len(self.motors)
 
     def _plant_parameters(self, params):
         # No table: the hand reaches in free space (and PyBullet has one body fewer to collide).
@@ -95,38 +96,41 @@ class BH8FingerReachEnv(BH8LoopEnv):
     def _begin_episode(self, rng: np.random.Generator) -> None:
         episode = self.scene.sample_episode(rng)
         self.scene.begin_episode(episode)
-        self.targets[:] = episode.targets
+        self._targets = [float(t) for t in episode.targets]
+
+    @property
+    def targets(self) -> np.ndarray:
+        """This episode's target encoder counts, one per LOOP motor (a copy; see `set_targets`)."""
+        return np.array(self._targets)
 
     def set_targets(self, counts: Sequence[int]) -> None:
         """Set the targets (encoder counts, one per LOOP motor), e.g. for deployment."""
         counts = np.asarray(counts, dtype=np.float64)
-        if counts.shape != self.targets.shape or not np.all(np.isfinite(counts)):
+        if counts.shape != (len(self.motors),) or not np.all(np.isfinite(counts)):
             raise ValueError(f"targets must be {len(self.motors)} finite encoder counts, got {counts!r}")
         self.scene.begin_episode(ReachEpisode(tuple(int(c) for c in counts)))
-        self.targets[:] = counts
+        self._targets = counts.tolist()
 
     def _extra_observation_names(self) -> list[str]:
         return [f"target{m}" for m in self.motors] + [f"error{m}" for m in self.motors]
 
     def _fill_extra(self, out: np.ndarray, elapsed: float) -> None:
-        n = len(self.motors)
-        out[:n] = self.targets / self._full_range
-        positions = self._host_values[self._lfap_index]
-        out[n:2 * n] = (self.targets - positions) / self._full_range
+        targets, full_range, values = self._targets, self._full_range, self._host_values
+        out[:2 * len(targets)] = [t / r for t, r in zip(targets, full_range)] + [
+            (t - values[i]) / r for t, i, r in zip(targets, self._lfap_index, full_range)]
 
     def _fill_host(self, out, values, previous_action, elapsed):
-        self._host_values = np.asarray(values, dtype=np.float64)
+        self._host_values = values
         super()._fill_host(out, values, previous_action, elapsed)
 
     def _privileged_info(self) -> dict:
         return {"motor_positions": self.plant.motor_positions(), "joint_angles": self.plant.joint_angles()}
 
     def _reward(self, values, elapsed: float, done: bool):
-        positions = np.asarray(values, dtype=np.float64)[self._lfap_index]
-        error = np.abs(self.targets - positions)
-        success = bool(np.all(error <= self._tolerances))
+        errors = [abs(t - values[i]) for t, i in zip(self._targets, self._lfap_index)]
+        success = all(e <= tolerance for e, tolerance in zip(errors, self._tolerances))
         terms = {
-            "error": -float(np.mean(error / self._full_range)),
+            "error": -(sum(e / r for e, r in zip(errors, self._full_range)) / len(errors)),
             "success": self.success_bonus if success else 0.0,
         }
         return terms["error"] + terms["success"], terms, success, success
