@@ -206,7 +206,7 @@ class BH8LoopEnv(gym.Env):
         self._snapshot = self.firmware.snapshot()
         self._randomizer = PlantRandomizer(self.plant, self.firmware)
 
-        self._prev_action = np.zeros(self._n_act, dtype=np.int64)
+        self._prev_action: list[int] = [0] * self._n_act
         self._feedback_block_size = self.layout.feedback_size
         self._a_block = self.layout.encode_control((), HEADER_FEEDBACK)
         self._elapsed = 0.0
@@ -229,8 +229,10 @@ class BH8LoopEnv(gym.Env):
     def _privileged_observation_names(self) -> list[str]:
         return []
 
-    def _fill_extra(self, out: np.ndarray, elapsed: float) -> None:
-        """Write the subclass's host-side observation entries into `out`."""
+    def _extra_observation(self, values: Sequence[int], elapsed: float) -> list[float]:
+        """The subclass's host-side observation entries (plain floats), from the decoded feedback
+        `values` and the host's clock."""
+        return []
 
     def _fill_privileged(self, out: np.ndarray) -> None:
         """Write privileged entries into `out` (only with privileged=True)."""
@@ -329,19 +331,18 @@ class BH8LoopEnv(gym.Env):
         `bh8 deploy` calls with the real hand's blocks; privileged entries are never included.
         """
         out = np.zeros(self._n_host, dtype=np.float32)
-        self._fill_host(out, values, np.asarray(previous_action, dtype=np.float64), elapsed)
+        self._fill_host(out, values, np.asarray(previous_action, dtype=np.float64).tolist(), elapsed)
         return out
 
-    def _fill_host(self, out: np.ndarray, values, previous_action: np.ndarray, elapsed: float) -> None:
+    def _fill_host(self, out: np.ndarray, values, previous_action: list, elapsed: float) -> None:
         # One store of plain floats (cheaper than numpy expressions on ~20 entries); the arithmetic is
         # numpy's float64, term for term, so the float32 observation is bit-identical.
         host = [(v - offset) * scale for v, offset, scale in zip(values, self._fb_offset_list, self._fb_scale_list)]
         host += [(value - centre) / half  # wrappers.bytes_to_unit
-                 for value, centre, half in zip(previous_action.tolist(), self._action_centres, self._action_halves)]
+                 for value, centre, half in zip(previous_action, self._action_centres, self._action_halves)]
         host.append(min(elapsed / self.episode_seconds, 1.0))
-        end = len(host)
-        out[:end] = host
-        self._fill_extra(out[end:self._n_host], elapsed)
+        host += self._extra_observation(values, elapsed)
+        out[:self._n_host] = host
 
     def _observation(self, values) -> np.ndarray:
         obs = self._obs
@@ -372,7 +373,7 @@ class BH8LoopEnv(gym.Env):
         self._begin_episode(self.np_random)
         self._processing_time = self.firmware.processing_time
         self._elapsed = 0.0
-        self._prev_action[:] = 0
+        self._prev_action = [0] * self._n_act
         self._cycles = 0
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -389,7 +390,7 @@ class BH8LoopEnv(gym.Env):
         control = self._validate_action(action)
         block = self.layout.encode_control(control, HEADER_CONTROL_FEEDBACK)
         values = self._cycle(block)
-        self._prev_action[:] = control
+        self._prev_action = control
         self._last_values = values
         elapsed = self._elapsed = self.next_elapsed(self._elapsed, self._control_block_size, self._processing_time)
         truncated = elapsed >= self.episode_seconds - END_TOLERANCE_S

@@ -114,14 +114,10 @@ class BH8FingerReachEnv(BH8LoopEnv):
     def _extra_observation_names(self) -> list[str]:
         return [f"target{m}" for m in self.motors] + [f"error{m}" for m in self.motors]
 
-    def _fill_extra(self, out: np.ndarray, elapsed: float) -> None:
-        targets, full_range, values = self._targets, self._full_range, self._host_values
-        out[:2 * len(targets)] = [t / r for t, r in zip(targets, full_range)] + [
+    def _extra_observation(self, values, elapsed: float) -> list[float]:
+        targets, full_range = self._targets, self._full_range
+        return [t / r for t, r in zip(targets, full_range)] + [
             (t - values[i]) / r for t, i, r in zip(targets, self._lfap_index, full_range)]
-
-    def _fill_host(self, out, values, previous_action, elapsed):
-        self._host_values = values
-        super()._fill_host(out, values, previous_action, elapsed)
 
     def _privileged_info(self) -> dict:
         return {"motor_positions": self.plant.motor_positions(), "joint_angles": self.plant.joint_angles()}

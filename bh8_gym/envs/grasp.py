@@ -117,7 +117,7 @@ class BH8GraspEnv(BH8LoopEnv):
                                 for part in ("inner", "outer", "tip")}
         self._hand = hand
         self._client = client
-        self._phase_durations = np.array(self.arm.durations)
+        self._phase_durations = self.arm.durations
 
     # ------------------------------------------------------------------ scene and observation
 
@@ -130,11 +130,12 @@ class BH8GraspEnv(BH8LoopEnv):
     def _privileged_observation_names(self) -> list[str]:
         return ["object_dx", "object_dy", "object_dz", "object_rise", "contact_f1", "contact_f2", "contact_f3"]
 
-    def _fill_extra(self, out: np.ndarray, elapsed: float) -> None:
+    def _extra_observation(self, values, elapsed: float) -> list[float]:
         index, in_phase = self.arm.phase(elapsed)
-        out[:self._n_phases] = 0.0
-        out[index] = 1.0
-        out[self._n_phases] = min(in_phase / self._phase_durations[index], 1.0)
+        phases = [0.0] * self._n_phases
+        phases[index] = 1.0
+        phases.append(min(in_phase / self._phase_durations[index], 1.0))
+        return phases
 
     def _object_state(self):
         p = self._p
