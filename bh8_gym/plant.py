@@ -473,32 +473,31 @@ class HandPlant:
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
 
-    def _drive_worm(self, joint: int, target: float, force: float, sign: float) -> None:
-        """Drive a finger joint through its worm: a load cannot make it run faster than `target`.
-
-        A joint at (or above) its target speed whose motor was not pushing at its torque limit
-        may get its next push from a load helping it along, so it is braked at the target speed
-        (`overrun_brake_torque`); a motor found pushing at its limit gets its own torque back.
-        """
-        state = self._state
-        forward = sign * target
-        if (
-            forward > 0.0 and sign * state.velocities[joint] >= forward * self._overrun_speed_fraction
-            and sign * state.torques[joint] < force and self._brake_torque > force
-        ):
-            force = self._brake_torque
-        state.held[joint] = False
-        state.target_velocities[joint] = target
-        state.forces[joint] = force
-        state.position_gains[joint] = 0.0
-
     def _command_joints(self) -> None:
         """Joint targets and force limits for this step from the drives and the clutch state."""
         prm, state = self.params, self._state
         q, w, tau = state.positions, state.velocities, state.torques
         inner_open, inner_closed = self._inner_open, self._inner_closed
         outer_open, outer_closed = self._outer_open, self._outer_closed
-        hold, drive = self._hold, self._drive_worm
+        hold = self._hold
+        target_velocities, forces, position_gains = state.target_velocities, state.forces, state.position_gains
+        brake, overrun = self._brake_torque, self._overrun_speed_fraction
+
+        def worm(joint: int, target: float, force: float, sign: float, speed: float, torque: float) -> None:
+            """Drive a finger joint through its worm: a load cannot make it run faster than `target`.
+
+            A joint at (or above) its target speed whose motor was not pushing at its torque limit
+            may get its next push from a load helping it along, so it is braked at the target speed
+            (`overrun_brake_torque`); a motor found pushing at its limit gets its own torque back.
+            """
+            forward = sign * target
+            if forward > 0.0 and sign * speed >= forward * overrun and sign * torque < force and brake > force:
+                force = brake
+            held[joint] = False
+            target_velocities[joint] = target
+            forces[joint] = force
+            position_gains[joint] = 0.0
+
         held, latched = state.held, state.latched_torque
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         locked_fingers, engaged, drive_capacity = state.locked, state.engaged, state.drive_capacity
@@ -541,8 +540,9 @@ class HandPlant:
                 inner_load, outer_load = sign * tau[i3], sign * tau[i2]
                 inner_force = capacity - inner_load / 3.0 if inner_load > 0.0 else capacity
                 outer_force = capacity - outer_load if outer_load > 0.0 else capacity
-                drive(i2, omega - correction, inner_force if inner_force > inner_floor else inner_floor, sign)
-                drive(i3, (omega + correction) * _THIRD, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign)
+                worm(i2, omega - correction, inner_force if inner_force > inner_floor else inner_floor, sign, w[i2], tau[i2])
+                worm(i3, (omega + correction) * _THIRD, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign,
+                     w[i3], tau[i3])
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
                 capacity = fraction * self._outer_capacity
@@ -559,7 +559,7 @@ class HandPlant:
                     hold(i3, backdriven, tau[i3] if squeeze else 0.0)
                     drive_capacity[f] = 0.0
                 else:
-                    drive(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
+                    worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign, w[i3], tau[i3])
                     drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX

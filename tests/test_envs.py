@@ -10,6 +10,9 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 import bh8_gym  # noqa: F401  (registers the environments)
 from bh8_gym.envs import ENV_IDS
@@ -199,6 +202,24 @@ def test_continuous_actions_map_onto_the_loop_bytes(reach):
     assert info["control_block"] == b"C" + bytes([127] * 4)
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
+
+
+class _ByteActionEnv(gym.Env):
+    """Only an action space: LCV and LCPG bytes for four motors, as the grasp env's default layout."""
+
+    action_space = gym.spaces.Box(np.array([-128, 0] * 4), np.array([127, 255] * 4), dtype=np.int16)
+    observation_space = gym.spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+
+
+@given(arrays(np.float32, 8, elements=st.floats(-3.0, 3.0, width=32)))
+def test_continuous_actions_wrapper_is_unit_to_bytes(unit):
+    """The wrapper's per-step plain-float mapping gives exactly `unit_to_bytes`' bytes (which
+    `bh8 deploy` applies too), halfway cases and clipping included."""
+    wrapper = ContinuousActions(_ByteActionEnv())
+    low, high = wrapper.env.action_space.low.astype(np.float64), wrapper.env.action_space.high.astype(np.float64)
+    mapped = wrapper.action(unit)
+    assert mapped.dtype == np.int16
+    assert mapped.tolist() == unit_to_bytes(unit.astype(np.float64), low, high).tolist()
 
 
 def test_reach_targets_success_terminates(reach):

@@ -6,6 +6,7 @@ so a trained policy drives a real hand with exactly the bytes it produced in sim
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Callable
 
@@ -48,17 +49,25 @@ class ContinuousActions(gym.ActionWrapper):
             raise ValueError(f"ContinuousActions wraps an integer Box action space, got {space!r}")
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
-        self._bytes = np.zeros(space.shape, dtype=space.dtype)
+        self._dtype = space.dtype
+        # unit_to_bytes' centre and half-range, as plain floats for the per-step path
+        self._centres = ((self._low + self._high) / 2.0).tolist()
+        self._halves = ((self._high - self._low) / 2.0).tolist()
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=space.shape, dtype=np.float32)
 
     def action(self, action) -> np.ndarray:
         unit = np.asarray(action, dtype=np.float64)
         if unit.shape != self._low.shape:
             raise ValueError(f"action must have shape {self._low.shape}, got {unit.shape}: {action!r}")
-        if not np.all(np.isfinite(unit)):
-            raise ValueError(f"action must be finite, got {action!r}")
+        # unit_to_bytes term for term in plain floats (a handful of values: numpy's per-call costs
+        # would dominate); Python's round() rounds half to even, as np.rint does.
+        values = []
+        for u, centre, half in zip(unit.tolist(), self._centres, self._halves):
+            if not math.isfinite(u):
+                raise ValueError(f"action must be finite, got {action!r}")
+            values.append(round(centre + half * (-1.0 if u < -1.0 else (1.0 if u > 1.0 else u))))
         # A fresh array: the env may keep the action (previous-action observation, info).
-        return unit_to_bytes(unit, self._low, self._high)
+        return np.array(values, dtype=self._dtype)
 
     def reverse_action(self, action) -> np.ndarray:
         return bytes_to_unit(action, self._low, self._high)
