@@ -36,6 +36,8 @@ Drive-train model (one finger):
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -69,6 +71,18 @@ OBJECT_KINDS = ("box", "cylinder", "sphere", "capsule", "urdf", "mesh")
 
 class PlantError(ValueError):
     """A bad argument to the plant's API (names the offending value)."""
+
+
+class DisplayUnavailableError(RuntimeError):
+    """gui=True (render_mode="human", `bh8 serve --gui`) on a machine without a display."""
+
+
+def display_available() -> bool:
+    """False on Linux and the BSDs when DISPLAY is not set. PyBullet's GUI then ends the whole
+    process (exit status 1, no exception), so it is checked before connecting."""
+    if sys.platform.startswith("linux") or "bsd" in sys.platform:
+        return bool(os.environ.get("DISPLAY"))
+    return True
 
 
 @dataclass
@@ -205,6 +219,9 @@ class HandPlant:
         self.params = params = replace(params) if params is not None else PlantParameters()
         params.validate()
         self._rng = np.random.default_rng(seed)
+        if gui and not display_available():
+            raise DisplayUnavailableError("gui=True needs a display and DISPLAY is not set (a headless machine): "
+                                          "use gui=False / render_mode='rgb_array', or run under xvfb-run")
         self._client = p.connect(p.GUI if gui else p.DIRECT)
         if self._client < 0:
             raise RuntimeError("PyBullet could not connect (gui=True needs a display)")

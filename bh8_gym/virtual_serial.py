@@ -455,12 +455,6 @@ def _json_object(text: str) -> dict:
     return value
 
 
-def _display_available() -> bool:
-    if sys.platform.startswith("linux") or "bsd" in sys.platform:
-        return bool(os.environ.get("DISPLAY"))
-    return True
-
-
 @contextlib.contextmanager
 def _native_stdout_to_stderr():
     """Send what native code prints to stdout (PyBullet's GUI start-up chatter) to stderr, so the
@@ -477,7 +471,9 @@ def _native_stdout_to_stderr():
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.gui and not _display_available():
+    from bh8_gym.plant import display_available
+
+    if args.gui and not display_available():
         print("bh8 serve: --gui needs a display and DISPLAY is not set; run without --gui "
               "(or under xvfb-run)", file=sys.stderr)
         return 2

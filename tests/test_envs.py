@@ -5,6 +5,9 @@ layout, §6 time per cycle), so several tests check the raw blocks in `info`.
 """
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 import warnings
 
 import gymnasium as gym
@@ -202,6 +205,40 @@ def test_continuous_actions_map_onto_the_loop_bytes(reach):
     assert info["control_block"] == b"C" + bytes([127] * 4)
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
+
+
+def test_human_rendering_without_a_display_is_a_clear_error(monkeypatch):
+    """render_mode="human" on a headless machine raises instead of letting PyBullet's GUI end the
+    process; so does gymnasium's check_env with its render check (it makes a "human" env)."""
+    from gymnasium.utils.env_checker import check_env
+
+    from bh8_gym.plant import DisplayUnavailableError
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    with pytest.raises(DisplayUnavailableError, match="DISPLAY"):
+        gym.make("BH8FingerReach-v0", render_mode="human")
+    env = gym.make("BH8FingerReach-v0").unwrapped
+    try:
+        with pytest.raises(DisplayUnavailableError):
+            check_env(env)
+    finally:
+        env.close()
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="needs xvfb-run (Debian package xvfb)")
+def test_gymnasium_env_checker_with_its_render_check_passes_on_a_display():
+    """With a display, check_env's defaults pass too: they make and render a "human" env (PyBullet's GUI)."""
+    script = ("import gymnasium as gym, bh8_gym\n"
+              "from gymnasium.utils.env_checker import check_env\n"
+              "for env_id in bh8_gym.envs.ENV_IDS:\n"
+              "    env = gym.make(env_id).unwrapped\n"
+              "    check_env(env)\n"
+              "    env.close()\n"
+              "print('checked')\n")
+    process = subprocess.run(["xvfb-run", "-a", sys.executable, "-c", script], capture_output=True, text=True,
+                             timeout=240)
+    assert process.returncode == 0 and process.stdout.strip().endswith("checked"), process.stderr[-2000:]
 
 
 class _ByteActionEnv(gym.Env):
