@@ -354,6 +354,14 @@ def test_bad_configuration_raises():
         gym.make("BH8Grasp-v0", lcv=False, lcpg=False)
 
 
+@pytest.mark.parametrize("name", ["randomize", "privileged", "lcpg", "lfv", "lft", "shake"])
+@pytest.mark.parametrize("value", ["false", 2, None])
+def test_on_off_keywords_refuse_non_booleans(name, value):
+    """A JSON or CLI string "false" is truthy: it must not silently switch randomisation (or a flag) on."""
+    with pytest.raises(ValueError, match=f"{name} must be True or False, got {value!r}"):
+        gym.make("BH8Grasp-v0", **{name: value})
+
+
 def test_other_loop_flags_change_the_layout_and_spaces():
     env = gym.make("BH8Grasp-v0", motors=(1, 2, 3), lcpg=False, lfv=True, lfdp=True, lft=True,
                    randomize=False).unwrapped

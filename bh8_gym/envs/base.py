@@ -59,6 +59,12 @@ class FirmwareProtocolError(RuntimeError):
     """The emulated firmware answered something other than the expected block or prompt."""
 
 
+def check_switch(name: str, value) -> None:
+    """An on/off keyword must be a bool (or 0/1): a string such as "false" would otherwise count as on."""
+    if not (isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1))):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+
+
 class BH8LoopEnv(gym.Env):
     """Base class; subclasses define the scene, the extra observation entries and the reward."""
 
@@ -95,6 +101,10 @@ class BH8LoopEnv(gym.Env):
                 raise ValueError(f"{name} must be an integer 1..255 (Table 4), got {value!r}")
         if not episode_seconds > 0:
             raise ValueError(f"episode_seconds must be > 0, got {episode_seconds!r}")
+        switches = {"randomize": randomize, "privileged": privileged, "lft": lft, "lfdpd": lfdpd,
+                    **{name.lower(): getattr(flags, name) for name in ("LCV", "LCPG", "LFV", "LFS", "LFAP", "LFDP")}}
+        for name, value in switches.items():
+            check_switch(name, value)
         self.layout = LoopLayout(motors, flags, lft=lft, firmware=firmware_profile)
         if not self.layout.control_fields:
             raise ValueError("the LOOP configuration sends no control data (enable LCV or LCPG)")

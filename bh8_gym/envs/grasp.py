@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from bh8_gym.envs.base import BH8LoopEnv
+from bh8_gym.envs.base import BH8LoopEnv, check_switch
 from bh8_gym.envs.objects import ObjectSet, ObjectSpec
 from bh8_gym.envs.randomization import RandomizationRanges
 from bh8_gym.envs.scenes import ArmSchedule, GraspScene, PlacementRanges
@@ -86,6 +86,7 @@ class BH8GraspEnv(BH8LoopEnv):
             self.object_set = object_set
         else:
             self.object_set = ObjectSet.named(object_set)
+        check_switch("shake", shake)
         arm = arm or ArmSchedule()
         if shake and arm.shake_amplitude == 0.0:
             arm = ArmSchedule(arm.grasp_seconds, arm.lift_seconds, arm.hold_seconds, arm.lift_height,
