@@ -496,6 +496,7 @@ class HandPlant:
         q, w, tau = state.positions, state.velocities, state.torques
         inner_open, inner_closed = self._inner_open, self._inner_closed
         outer_open, outer_closed = self._outer_open, self._outer_closed
+        held, latched = state.held, state.latched_torque
         hold = self._hold
         target_velocities, forces, position_gains = state.target_velocities, state.forces, state.position_gains
         brake, overrun = self._brake_torque, self._overrun_speed_fraction
@@ -515,7 +516,6 @@ class HandPlant:
             forces[joint] = force
             position_gains[joint] = 0.0
 
-        held, latched = state.held, state.latched_torque
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         locked_fingers, engaged, drive_capacity = state.locked, state.engaged, state.drive_capacity
         for f, i2, i3 in FINGER_JOINTS:
