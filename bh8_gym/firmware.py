@@ -936,7 +936,7 @@ class Firmware:
         self._seconds_per_byte = BITS_PER_BYTE / self.baud
         self._feedback_plan = [
             (name, m, self._channels[m].period, values[m]["SGFLIP"], coefficient(values[m]["LFVC"]),
-             coefficient(values[m]["LFDPC"])) if m is not None else (name, m, 0.0, 0, 1, 1)  # LFT: the hand's
+             coefficient(values[m]["LFDPC"])) if m is not None else (name, m, 0.0, 0, 1, 1)  # LFT: no motor
             for m, name in layout.feedback_fields
         ]
         self._output += b"*"
