@@ -297,8 +297,6 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
             obs, info = env.reset(seed=seed + episode)
             if baseline is not None:
                 baseline.reset(env)
-            elif not deterministic and hasattr(policy, "reset_noise"):
-                policy.reset_noise()
             frames.append(env.render())
             done, step = False, 0
             while not done:

@@ -345,7 +345,7 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
 
     policy = _export_untrained_reach_policy(tmp_path)
     out = tmp_path / "report"
-    assert main(["eval", str(policy), "--episodes", "3", "--out", str(out), "--gif-episodes", "0"]) == 0
+    assert main(["eval", str(policy), "--episodes", "3", "--out", str(out), "--gif-episodes", "1"]) == 0
     printed = capsys.readouterr().out
     assert "95% Wilson CI" in printed and "| object |" in printed
     report = json.loads((out / "results.json").read_text())
@@ -353,6 +353,7 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
     low, high = wilson_interval(report["summary"]["successes"], 3)
     assert report["summary"]["success_ci_low"] == pytest.approx(low)
     assert (out / "table.md").read_text().splitlines()[-1].startswith("| **all** | 3 |")
+    assert (out / "episodes.gif").read_bytes()[:6] == b"GIF89a"  # the README's main job writes one too
 
 
 def test_eval_compare_pairs_two_reports_on_the_same_episodes(tmp_path, capsys):
