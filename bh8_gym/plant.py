@@ -399,7 +399,9 @@ class HandPlant:
             velocity, fraction = velocities[index], torque_fractions[index]
             if fraction == fraction and (not 0.0 <= fraction <= 1.0 or not math.isfinite(velocity)):
                 raise PlantError(f"motor {index + 1}: velocity {velocity!r} must be finite and torque fraction {fraction!r} in [0, 1]")
-        self._store_drives([float(v) for v in velocities], [float(f) for f in torque_fractions])
+        fractions = [float(fraction) for fraction in torque_fractions]
+        # the velocity of a motor turned off is not looked at
+        self._store_drives([float(v) if f == f else 0.0 for v, f in zip(velocities, fractions)], fractions)
 
     def step_with_drives(self, velocities: list[float], torque_fractions: list[float]) -> tuple[list[float], list[float]]:
         """The firmware's per-physics-step path: `set_drives` without its checks (the HCTL emulation
