@@ -18,33 +18,28 @@ class PhysicsTimer:
     PyBullet calls (`other_seconds`, `other_calls`); the functions are patched on the module while active."""
 
     def __init__(self):
-        self.seconds, self.calls = 0.0, 0
-        self.other_seconds, self.other_calls = 0.0, 0
+        self._step, self._other = [0.0, 0], [0.0, 0]  # [seconds, calls]
         self._originals = {name: f for name, f in vars(p).items() if isinstance(f, types.BuiltinFunctionType)}
+
+    seconds = property(lambda self: self._step[0])
+    calls = property(lambda self: self._step[1])
+    other_seconds = property(lambda self: self._other[0])
+    other_calls = property(lambda self: self._other[1])
 
     def __enter__(self) -> "PhysicsTimer":
         clock = time.perf_counter
 
-        def timed_step(original):
+        def timed(original, total):
             def call(*args, **kwargs):
                 start = clock()
                 result = original(*args, **kwargs)
-                self.seconds += clock() - start
-                self.calls += 1
-                return result
-            return call
-
-        def timed_other(original):
-            def call(*args, **kwargs):
-                start = clock()
-                result = original(*args, **kwargs)
-                self.other_seconds += clock() - start
-                self.other_calls += 1
+                total[0] += clock() - start
+                total[1] += 1
                 return result
             return call
 
         for name, original in self._originals.items():
-            setattr(p, name, timed_step(original) if name == "stepSimulation" else timed_other(original))
+            setattr(p, name, timed(original, self._step if name == "stepSimulation" else self._other))
         return self
 
     def __exit__(self, *exc) -> None:
