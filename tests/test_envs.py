@@ -257,6 +257,8 @@ def test_continuous_actions_wrapper_is_unit_to_bytes(unit):
     mapped = wrapper.action(unit)
     assert mapped.dtype == np.int16
     assert mapped.tolist() == unit_to_bytes(unit.astype(np.float64), low, high).tolist()
+    reference = np.rint((low + high) / 2.0 + (high - low) / 2.0 * np.clip(unit.astype(np.float64), -1.0, 1.0))
+    assert mapped.tolist() == reference.astype(np.int64).tolist()  # numpy's rint: halves to even
 
 
 def test_reach_targets_success_terminates(reach):

@@ -19,13 +19,20 @@ def unit_to_bytes(unit: np.ndarray, low: np.ndarray, high: np.ndarray, out: np.n
 
     LCV (-128..127): -1 -> -128, 0 -> 0, +1 -> 127. LCPG (0..255): -1 -> 0, +1 -> 255.
     """
-    centre = (low + high) / 2.0
-    half = (high - low) / 2.0
-    values = np.rint(centre + half * np.clip(unit, -1.0, 1.0))
+    units, centres, halves = np.broadcast_arrays(np.asarray(unit, dtype=np.float64), (low + high) / 2.0, (high - low) / 2.0)
+    values = np.array(unit_to_byte_list(units.ravel().tolist(), centres.ravel().tolist(), halves.ravel().tolist()),
+                      dtype=np.int64).reshape(units.shape)
     if out is None:
         return values.astype(np.int16)
     out[...] = values
     return out
+
+
+def unit_to_byte_list(units: list[float], centres: list[float], halves: list[float]) -> list[int]:
+    """`unit_to_bytes` on plain floats, element by element: round(centre + half x clip(u, -1, 1)),
+    halves to even as np.rint. The per-step path: on a handful of values numpy's call costs dominate."""
+    return [round(centre + half * (-1.0 if u < -1.0 else (1.0 if u > 1.0 else u)))
+            for u, centre, half in zip(units, centres, halves)]
 
 
 def bytes_to_unit(values: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -50,7 +57,7 @@ class ContinuousActions(gym.ActionWrapper):
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
         self._dtype = space.dtype
-        # unit_to_bytes' centre and half-range, as plain floats for the per-step path
+        # unit_to_bytes' centre and half-range, once, as plain floats
         self._centres = ((self._low + self._high) / 2.0).tolist()
         self._halves = ((self._high - self._low) / 2.0).tolist()
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=space.shape, dtype=np.float32)
@@ -59,15 +66,11 @@ class ContinuousActions(gym.ActionWrapper):
         unit = np.asarray(action, dtype=np.float64)
         if unit.shape != self._low.shape:
             raise ValueError(f"action must have shape {self._low.shape}, got {unit.shape}: {action!r}")
-        # unit_to_bytes term for term in plain floats (a handful of values: numpy's per-call costs
-        # would dominate); Python's round() rounds half to even, as np.rint does.
-        values = []
-        for u, centre, half in zip(unit.tolist(), self._centres, self._halves):
-            if not math.isfinite(u):
-                raise ValueError(f"action must be finite, got {action!r}")
-            values.append(round(centre + half * (-1.0 if u < -1.0 else (1.0 if u > 1.0 else u))))
+        units = unit.tolist()
+        if not all(math.isfinite(u) for u in units):
+            raise ValueError(f"action must be finite, got {action!r}")
         # A fresh array: the env may keep the action (previous-action observation, info).
-        return np.array(values, dtype=self._dtype)
+        return np.array(unit_to_byte_list(units, self._centres, self._halves), dtype=self._dtype)
 
     def reverse_action(self, action) -> np.ndarray:
         return bytes_to_unit(action, self._low, self._high)
