@@ -268,9 +268,7 @@ class BarrettHand:
         self._port_failed = False
 
     def disconnect(self) -> None:
-        """Leave RealTime mode if active (best effort) and close the port if this client opened it.
-
-        (`close()` is the GCL C command, like `open()` is O.)"""
+        """Leave RealTime mode if active (best effort) and close the port if this client opened it."""
         if self._port is None:
             return
         if self._layout is not None and not self._port_failed:
@@ -284,6 +282,11 @@ class BarrettHand:
             except PORT_ERRORS:
                 pass
         self._port = None
+
+    def close(self) -> None:
+        """The same as `disconnect()`, under the name pyserial and `contextlib.closing` use: it never
+        moves the hand (the GCL C command is `close_motors()`)."""
+        self.disconnect()
 
     def __enter__(self) -> "BarrettHand":
         return self
@@ -348,6 +351,8 @@ class BarrettHand:
 
     def _clear_input(self) -> None:
         self._rx.clear()
+        if self._port is None:
+            raise HandConnectionError(f"{self._port_name!r} is closed")
         try:
             self._port.reset_input_buffer()
         except PORT_ERRORS as error:
@@ -536,12 +541,12 @@ class BarrettHand:
         """HI: open each motor against its stop and set its origin (must precede other motions)."""
         self._motion(motors, "HI")
 
-    def open(self, motors="GS") -> None:
+    def open_motors(self, motors="GS") -> None:
         """O: move to the open target OT (never ERR 16)."""
         self._motion(motors, "O")
 
-    def close(self, motors="GS") -> None:
-        """C: move to the close target CT (never ERR 16). (The port is released by disconnect().)"""
+    def close_motors(self, motors="GS") -> None:
+        """C: move to the close target CT (never ERR 16). (`close()` releases the port.)"""
         self._motion(motors, "C")
 
     def move(self, position: int | None = None, motors="GS") -> None:

@@ -8,6 +8,7 @@ Three ends of the line:
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import pytest
@@ -315,7 +316,7 @@ def test_supervisory_framing_and_typed_results(scripted):
 
 @pytest.mark.parametrize(
     "call, line",
-    [(lambda b: b.initialize(), "1234HI"), (lambda b: b.open("G"), "123O"), (lambda b: b.close("13"), "13C"),
+    [(lambda b: b.initialize(), "1234HI"), (lambda b: b.open_motors("G"), "123O"), (lambda b: b.close_motors("13"), "13C"),
      (lambda b: b.move(5000, "1"), "1M 5000"), (lambda b: b.move(), "1234M"), (lambda b: b.step_open(300, "S"), "4IO 300"),
      (lambda b: b.step_close(None, "2"), "2IC"), (lambda b: b.home("G"), "123HOME"), (lambda b: b.torque_open(), "1234TO"),
      (lambda b: b.torque_close("3"), "3TC"), (lambda b: b.terminate("S"), "4T"), (lambda b: b.save("G"), "123FSAVE"),
@@ -329,6 +330,18 @@ def test_each_call_sends_its_gcl_line(scripted, call, line):
     assert hand.lines_received[-1] == line
 
 
+def test_close_releases_the_port_and_never_moves_the_hand(scripted):
+    """Python's and pyserial's close() releases the port, as disconnect() does; C is close_motors()."""
+    bh, hand, port = scripted
+    before = list(hand.lines_received)
+    with contextlib.closing(bh):
+        pass
+    assert hand.lines_received == before
+    with pytest.raises(HandConnectionError, match="closed"):
+        bh.close_motors("G")
+    assert hand.lines_received == before
+
+
 @pytest.mark.parametrize(
     "call, fragment",
     [(lambda b: b.move(20001), "20001"), (lambda b: b.move(-1), "-1"), (lambda b: b.move(1.5), "1.5"),
@@ -337,7 +350,7 @@ def test_each_call_sends_its_gcl_line(scripted, call, line):
      (lambda b: b.set_global(BAUD=384), "set_baud"), (lambda b: b.command("LOOP"), "start_loop"),
      (lambda b: b.command("PSET LFT 1 BAUD 96"), "set_baud"), (lambda b: b.command("FGET P\rHI"), "'FGET P\\rHI'"),
      (lambda b: b.set_baud(9601), "9601"), (lambda b: b.configure_loop("G", MCV=1), "MCV"),
-     (lambda b: b.close("7"), "'7'")],
+     (lambda b: b.close_motors("7"), "'7'")],
 )
 def test_bad_arguments_raise_value_error_naming_the_value(scripted, call, fragment):
     """Bad input to the Python API gets a specific exception naming the value, and nothing is sent."""
@@ -401,7 +414,7 @@ def test_motion_commands_get_the_motion_budget(scripted):
     does not (timeout 0.3 s)."""
     bh, hand, _ = scripted
     hand.delay_next_reply = 0.6
-    bh.close("G")
+    bh.close_motors("G")
     hand.delay_next_reply = 0.6
     with pytest.raises(HandTimeout):
         bh.get("P", "1")
@@ -606,9 +619,9 @@ def test_sim_motion_calls(sim):
     assert info.value.code == 4
     sim.initialize()
     assert all(abs(p) <= MPE for p in sim.get("P")["P"])
-    sim.close("G")
+    sim.close_motors("G")
     assert all(p > 10000 for p in sim.get("P", "G")["P"])
-    sim.open("G")
+    sim.open_motors("G")
     assert all(abs(p) <= 200 for p in sim.get("P", "G")["P"])
     sim.move(5000, "1")
     assert abs(sim.get("P", "1")["P"][0] - 5000) <= MPE
@@ -628,7 +641,7 @@ def test_sim_motion_calls(sim):
     banner = sim.reset()
     assert "BarrettHand Firmware" in banner
     with pytest.raises(HandError) as info:
-        sim.close("G")
+        sim.close_motors("G")
     assert info.value.code == 4  # RESET = power cycle: motors uninitialised again
 
 
@@ -709,14 +722,14 @@ def test_pty_representative_calls(served):
     with BarrettHand(served.device) as bh:
         assert bh.version().startswith("4.3")
         bh.initialize()
-        bh.close("G")
+        bh.close_motors("G")
         assert all(p > 10000 for p in bh.get("P", "G")["P"])
         bh.set("G", MCV=80)
         assert bh.get("MCV", "G") == {"MCV": [80, 80, 80]}
         with pytest.raises(HandError) as info:
             bh.command("XYZ")
         assert info.value.code == 32
-        bh.open("G")
+        bh.open_motors("G")
         bh.start_loop("GS")
         for _ in range(10):
             feedback = bh.update([5, 5, 5, 0], [50, 50, 50, 0])
