@@ -1,0 +1,80 @@
+"""How robust the locked-worm squeeze is (manual §9.3.1, App. B FAQ A1: with the motor current
+removed the grasp stays): GC with HOLD 0 on a standing 150 g cylinder, then 0.5 s with the motors
+off, over a grid of cylinder radii and sideways offsets. A grasp "keeps its squeeze" when every
+finger's strain-gauge load stays above 15 and their sum above 70 % of the loads the stalled drives
+produced (the criterion of tests/test_integration_grasp.py, which runs the grid's centre cell).
+
+Prints one line per cell and the count kept: a figure of the plant model's quality, not its speed.
+
+Run: python benchmarks/bench_squeeze.py
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+
+import numpy as np
+
+from bh8_gym.firmware import Firmware
+from bh8_gym.plant import HandPlant
+
+PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
+
+
+def command(fw: Firmware, line: str) -> None:
+    reply = fw.transact(line.encode() + b"\r")
+    if b"ERR" in reply:
+        raise RuntimeError(f"{line!r} answered {reply!r}")
+
+
+def squeeze(radius: float, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """(stalled loads, lowest loads with the motors off) per finger, strain-gauge units."""
+    plant = HandPlant(seed=0)
+    with tempfile.TemporaryDirectory() as store:
+        fw = Firmware(plant=plant, store_dir=store, seed=0)
+        try:
+            plant.set_wrist_pose((0.0, 0.0, 0.225), PALM_DOWN, teleport=True)
+            plant.add_object("cylinder", (radius, 0.13), position=(offset, 0.0, 0.065), mass=0.15)
+            command(fw, "HI")
+            command(fw, "GFSET HOLD 0")
+            zero = np.array(plant.strain_offsets)
+            fw.write(b"GC\r")
+            driving = [[], [], []]  # each finger's loads while its own motor drives
+            while not fw.idle:
+                fw.run_for(plant.dt)
+                gauges = plant.strain_gauges()[:3] - zero
+                for f in range(3):
+                    if plant._state.drive_on[f]:
+                        driving[f].append(gauges[f])
+            fw.read()
+            stalled = np.array([np.median(loads[-10:]) for loads in driving])
+            off = []
+            for _ in range(5):
+                fw.run_for(0.1)
+                off.append(plant.strain_gauges()[:3] - zero)
+            return stalled, np.array(off)
+        finally:
+            fw.shutdown()
+            plant.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--radii", type=float, nargs="+", default=[0.028, 0.029, 0.03, 0.031, 0.032])
+    parser.add_argument("--offsets", type=float, nargs="+", default=[-0.002, 0.0, 0.002])
+    args = parser.parse_args()
+    kept = 0
+    cells = len(args.radii) * len(args.offsets)
+    print("radius m  offset m  stalled loads    lowest loads, motors off  kept")
+    for radius in args.radii:
+        for offset in args.offsets:
+            stalled, off = squeeze(radius, offset)
+            ok = bool(np.all(off > 15) and np.all(off.sum(axis=1) >= 0.7 * stalled.sum()))
+            kept += ok
+            print(f"{radius:8.3f}  {offset:+8.3f}  {np.array2string(stalled.astype(int)):15s}  "
+                  f"{np.array2string(off.min(axis=0).astype(int)):24s}  {'yes' if ok else 'no'}", flush=True)
+    print(f"squeeze kept in {kept} of {cells} grasps")
+
+
+if __name__ == "__main__":
+    main()
