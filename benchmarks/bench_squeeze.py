@@ -3,8 +3,11 @@ removed the grasp stays): GC with HOLD 0 on a standing 150 g cylinder, then 0.5 
 off, over a grid of cylinder radii and sideways offsets. A grasp "keeps its squeeze" when every
 finger's strain-gauge load stays above 15 and their sum above 70 % of the loads the stalled drives
 produced (the criterion of tests/test_integration_grasp.py, which runs the grid's centre cell).
+Also per cell: how far each finger was pushed open (encoder counts, from its furthest-closed
+position) while its own motor was still driving it closed, which a powered worm does not allow,
+and how far the cylinder moved.
 
-Prints one line per cell and the count kept: a figure of the plant model's quality, not its speed.
+Prints one line per cell and the counts: figures of the plant model's quality, not its speed.
 
 Run: python benchmarks/bench_squeeze.py
 """
@@ -27,32 +30,39 @@ def command(fw: Firmware, line: str) -> None:
         raise RuntimeError(f"{line!r} answered {reply!r}")
 
 
-def squeeze(radius: float, offset: float) -> tuple[np.ndarray, np.ndarray]:
-    """(stalled loads, lowest loads with the motors off) per finger, strain-gauge units."""
+def squeeze(radius: float, offset: float) -> tuple[np.ndarray, np.ndarray, list[float], float]:
+    """Per finger: stalled loads and loads with the motors off (strain-gauge units), counts pushed
+    open while driving; and the cylinder's horizontal travel in metres."""
     plant = HandPlant(seed=0)
     with tempfile.TemporaryDirectory() as store:
         fw = Firmware(plant=plant, store_dir=store, seed=0)
         try:
             plant.set_wrist_pose((0.0, 0.0, 0.225), PALM_DOWN, teleport=True)
-            plant.add_object("cylinder", (radius, 0.13), position=(offset, 0.0, 0.065), mass=0.15)
+            cylinder = plant.add_object("cylinder", (radius, 0.13), position=(offset, 0.0, 0.065), mass=0.15)
             command(fw, "HI")
             command(fw, "GFSET HOLD 0")
             zero = np.array(plant.strain_offsets)
             fw.write(b"GC\r")
+            start = np.array(plant.object_pose(cylinder)[0][:2])
             driving = [[], [], []]  # each finger's loads while its own motor drives
+            furthest, pushed_open = [-np.inf] * 3, [0.0] * 3
             while not fw.idle:
                 fw.run_for(plant.dt)
                 gauges = plant.strain_gauges()[:3] - zero
+                positions = plant.motor_positions()
                 for f in range(3):
                     if plant._state.drive_on[f]:
                         driving[f].append(gauges[f])
+                        furthest[f] = max(furthest[f], positions[f])
+                        pushed_open[f] = max(pushed_open[f], furthest[f] - positions[f])
             fw.read()
             stalled = np.array([np.median(loads[-10:]) for loads in driving])
             off = []
             for _ in range(5):
                 fw.run_for(0.1)
                 off.append(plant.strain_gauges()[:3] - zero)
-            return stalled, np.array(off)
+            travel = float(np.linalg.norm(np.array(plant.object_pose(cylinder)[0][:2]) - start))
+            return stalled, np.array(off), pushed_open, travel
         finally:
             fw.shutdown()
             plant.close()
@@ -63,17 +73,19 @@ def main() -> None:
     parser.add_argument("--radii", type=float, nargs="+", default=[0.028, 0.029, 0.03, 0.031, 0.032])
     parser.add_argument("--offsets", type=float, nargs="+", default=[-0.002, 0.0, 0.002])
     args = parser.parse_args()
-    kept = 0
+    kept = backdriven = 0
     cells = len(args.radii) * len(args.offsets)
-    print("radius m  offset m  stalled loads    lowest loads, motors off  kept")
+    print("radius m  offset m  stalled loads    lowest loads, motors off  kept  pushed open while driving  cylinder moved")
     for radius in args.radii:
         for offset in args.offsets:
-            stalled, off = squeeze(radius, offset)
+            stalled, off, pushed_open, travel = squeeze(radius, offset)
             ok = bool(np.all(off > 15) and np.all(off.sum(axis=1) >= 0.7 * stalled.sum()))
             kept += ok
+            backdriven += max(pushed_open) > 100
             print(f"{radius:8.3f}  {offset:+8.3f}  {np.array2string(stalled.astype(int)):15s}  "
-                  f"{np.array2string(off.min(axis=0).astype(int)):24s}  {'yes' if ok else 'no'}", flush=True)
-    print(f"squeeze kept in {kept} of {cells} grasps")
+                  f"{np.array2string(off.min(axis=0).astype(int)):24s}  {'yes' if ok else 'no ':4s}  "
+                  f"{str([round(c) for c in pushed_open]):25s}  {travel * 100:.1f} cm", flush=True)
+    print(f"squeeze kept in {kept} of {cells} grasps; a driving finger pushed open by over 100 counts in {backdriven}")
 
 
 if __name__ == "__main__":
