@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+from bh8_gym.envs.wrappers import unit_to_bytes
 
 EXIT_ACTIONS = ("GT", "T", "none")
 # The host clock the observation's elapsed time uses: wall seconds since the first block (a real
@@ -97,14 +98,12 @@ class Deployment:
         self._high = space.high.astype(np.float64)
         fields = self.base.layout.control_fields
         is_velocity = np.array([name == "LCV" for _, name in fields])
-        self._center = (self._low + self._high) / 2.0
-        self._half = (self._high - self._low) / 2.0
         floor = -max_velocity if max_velocity < NO_VELOCITY_CLAMP else self._low
-        self._clamp_low = np.where(is_velocity, np.maximum(self._low, floor), self._low)
-        self._clamp_high = np.where(is_velocity, np.minimum(self._high, max_velocity), self._high)
+        self._clamp_low = np.where(is_velocity, np.maximum(self._low, floor), self._low).astype(np.int64)
+        self._clamp_high = np.where(is_velocity, np.minimum(self._high, max_velocity), self._high).astype(np.int64)
         # LCV 0 and LCPG 0: no motion and no torque (SPEC.md §5); the block sent before leaving LOOP
         self._stop_values = [0] * len(fields)
-        self._action = np.zeros(len(fields))
+        self._action = np.zeros(len(fields), dtype=np.int64)
         self.clock = clock
         self.layout = None
         self.cycles = 0
@@ -165,8 +164,10 @@ class Deployment:
                 while self.cycles <= cycles and self._stop_request is None:  # the "A" block was cycle 0
                     self._check_limits(feedback)
                     unit, _ = self.policy.predict(observation, deterministic=True)
-                    np.clip(np.rint(self._center + self._half * np.clip(unit, -1.0, 1.0)),
-                            self._clamp_low, self._clamp_high, out=self._action)
+                    if not np.all(np.isfinite(unit)):
+                        raise SafetyStop(f"the policy's action {np.asarray(unit).tolist()} is not finite")
+                    unit_to_bytes(unit, self._low, self._high, out=self._action)
+                    np.clip(self._action, self._clamp_low, self._clamp_high, out=self._action)
                     previous[:] = self._action
                     feedback = self._exchange(previous.tolist())
                     elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles

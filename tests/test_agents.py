@@ -468,6 +468,46 @@ def test_deploy_stops_safely_on_a_termination_signal(tmp_path, signum):
     assert control[0:1] == b"C" and set(control[1:]) == {0}  # LCV 0, LCPG 0: no motion, no torque
 
 
+def test_deploy_stops_safely_when_the_policy_outputs_nan(tmp_path):
+    """A policy that outputs NaN (a diverged network) is a safety stop with the reason logged and
+    the zero block sent, not an exception about an out-of-range byte."""
+    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.client import BarrettHand
+
+    exported = load_policy(_export_untrained_reach_policy(tmp_path))
+
+    class DivergingPolicy:
+        privileged, observation_dim = exported.privileged, exported.observation_dim
+
+        def __init__(self):
+            self.calls = 0
+
+        def predict(self, observation, deterministic=True):
+            self.calls += 1
+            action, state = exported.predict(observation, deterministic=deterministic)
+            if self.calls > 3:
+                action = np.full_like(action, np.nan)
+            return action, state
+
+    env = make_env(REACH, {})
+    log = tmp_path / "deploy.jsonl"
+    try:
+        with log.open("w") as log_file, BarrettHand("bh8sim://?seed=0") as hand:
+            deployment = Deployment(hand, DivergingPolicy(), env, log_file, clock="cycles")
+            deployment.setup(env.unwrapped.baud)
+            reason = deployment.run(20)
+    finally:
+        env.close()
+    assert reason.startswith("safety stop: the policy's action") and "nan" in reason
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    blocks = [r for r in records if "cycle" in r]
+    assert len(blocks) == 1 + 3 + 1  # the "A" block, 3 good cycles, the zero block
+    control = bytes.fromhex(blocks[-1]["control"])
+    assert control[0:1] == b"C" and set(control[1:]) == {0}
+
+
 def test_deploy_refuses_privileged_policy(tmp_path, capsys):
     from bh8_gym.cli import main
 
