@@ -19,7 +19,7 @@ import tempfile
 import numpy as np
 
 from bh8_gym.firmware import Firmware
-from bh8_gym.plant import HandPlant
+from bh8_gym.plant import HandPlant, PlantParameters
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
 
@@ -30,10 +30,10 @@ def command(fw: Firmware, line: str) -> None:
         raise RuntimeError(f"{line!r} answered {reply!r}")
 
 
-def squeeze(radius: float, offset: float) -> tuple[np.ndarray, np.ndarray, list[float], float]:
+def squeeze(params: PlantParameters, radius: float, offset: float) -> tuple[np.ndarray, np.ndarray, list[float], float]:
     """Per finger: stalled loads and loads with the motors off (strain-gauge units), counts pushed
     open while driving; and the cylinder's horizontal travel in metres."""
-    plant = HandPlant(seed=0)
+    plant = HandPlant(params, seed=0)
     with tempfile.TemporaryDirectory() as store:
         fw = Firmware(plant=plant, store_dir=store, seed=0)
         try:
@@ -72,20 +72,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--radii", type=float, nargs="+", default=[0.028, 0.029, 0.03, 0.031, 0.032])
     parser.add_argument("--offsets", type=float, nargs="+", default=[-0.002, 0.0, 0.002])
+    parser.add_argument("--solver-iterations", type=int, default=PlantParameters.solver_iterations,
+                        help="PyBullet's constraint solver iterations per step (PlantParameters.solver_iterations)")
     args = parser.parse_args()
+    params = PlantParameters(solver_iterations=args.solver_iterations)
     kept = backdriven = 0
     cells = len(args.radii) * len(args.offsets)
     print("radius m  offset m  stalled loads    lowest loads, motors off  kept  pushed open while driving  cylinder moved")
     for radius in args.radii:
         for offset in args.offsets:
-            stalled, off, pushed_open, travel = squeeze(radius, offset)
+            stalled, off, pushed_open, travel = squeeze(params, radius, offset)
             ok = bool(np.all(off > 15) and np.all(off.sum(axis=1) >= 0.7 * stalled.sum()))
             kept += ok
             backdriven += max(pushed_open) > 100
             print(f"{radius:8.3f}  {offset:+8.3f}  {np.array2string(stalled.astype(int)):15s}  "
                   f"{np.array2string(off.min(axis=0).astype(int)):24s}  {'yes' if ok else 'no ':4s}  "
                   f"{str([round(c) for c in pushed_open]):25s}  {travel * 100:.1f} cm", flush=True)
-    print(f"squeeze kept in {kept} of {cells} grasps; a driving finger pushed open by over 100 counts in {backdriven}")
+    print(f"solver iterations {args.solver_iterations}: squeeze kept in {kept} of {cells} grasps; "
+          f"a driving finger pushed open by over 100 counts in {backdriven}")
 
 
 if __name__ == "__main__":
