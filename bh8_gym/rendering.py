@@ -72,7 +72,7 @@ def save_png(path, rgb: np.ndarray) -> Path:
 
 
 def write_animation(frames, path, fps: float = 20.0) -> Path:
-    """Write frames as a GIF (`.gif`) or MP4 (`.mp4`, needs the imageio-ffmpeg package)."""
+    """Write frames as a GIF (`.gif`) or MP4 (`.mp4`, needs the `video` extra: imageio-ffmpeg)."""
     import imageio.v2 as imageio
 
     frames = [np.asarray(frame, dtype=np.uint8) for frame in frames]
@@ -89,7 +89,7 @@ def write_animation(frames, path, fps: float = 20.0) -> Path:
         try:
             import imageio_ffmpeg  # noqa: F401  (only checks that the backend exists)
         except ImportError:
-            raise RuntimeError("writing MP4 needs the imageio-ffmpeg package; write a .gif instead") from None
+            raise RuntimeError("writing MP4 needs imageio-ffmpeg: pip install 'bh8-gym[video]', or write a .gif") from None
         imageio.mimsave(path, frames, format="FFMPEG", fps=fps, macro_block_size=1)
     else:
         raise ValueError(f"animation path must end in .gif or .mp4, got {str(path)!r}")

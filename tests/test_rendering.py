@@ -1,0 +1,81 @@
+"""Headless pictures: `bh8 render` (PNG of the hand), and `write_animation` (GIF and MP4) that
+`record_episode` and `bh8 eval` use (issue 5, deliverable 6)."""
+from __future__ import annotations
+
+import sys
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from bh8_gym.cli import main
+from bh8_gym.rendering import write_animation
+
+
+def _frames(count: int, height: int = 48, width: int = 64) -> list[np.ndarray]:
+    """Frames that differ from each other: a bright bar moving across a dark picture."""
+    frames = []
+    for k in range(count):
+        frame = np.full((height, width, 3), 30, dtype=np.uint8)
+        frame[:, 4 * k: 4 * k + 8] = (250, 200, 40)
+        frames.append(frame)
+    return frames
+
+
+def test_bh8_render_writes_a_png_of_the_hand_closed_on_an_object(tmp_path, capsys):
+    path = tmp_path / "closed.png"
+    code = main(["render", "--closed", "--object", "cylinder:0.03x0.10", "--width", "160", "--height", "120",
+                 "-o", str(path)])
+    assert code == 0, capsys.readouterr()
+    picture = imageio.imread(path)
+    assert picture.shape[:2] == (120, 160)
+    assert picture[..., :3].std() > 10  # a hand and a cylinder, not a blank frame
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--spread", "200"], "--spread must be 0..180"),
+    (["--object", "teapot:3"], "teapot"),
+])
+def test_bh8_render_refuses_bad_arguments_with_exit_code_2(tmp_path, capsys, arguments, message):
+    path = tmp_path / "never.png"
+    assert main(["render", "-o", str(path), *arguments]) == 2
+    assert message in capsys.readouterr().out
+    assert not path.exists()
+
+
+def test_gif_keeps_every_frame_at_the_frame_rate(tmp_path):
+    frames = _frames(10)
+    path = write_animation(frames, tmp_path / "clip.gif", fps=25.0)
+    reader = imageio.get_reader(path)
+    read = [frame[..., :3] for frame in reader]
+    assert len(read) == 10
+    assert reader.get_meta_data(0)["duration"] == pytest.approx(40.0, abs=1.0)  # ms per frame
+    assert np.abs(read[3].astype(int) - frames[3]).mean() < 8  # GIF's palette, nothing worse
+
+
+def test_mp4_keeps_every_frame_at_the_frame_rate(tmp_path):
+    frames = _frames(12)
+    path = write_animation(frames, tmp_path / "clip.mp4", fps=25.0)
+    reader = imageio.get_reader(path, format="FFMPEG")
+    assert reader.get_meta_data()["fps"] == pytest.approx(25.0)
+    read = list(reader.iter_data())  # its len() is unknown (inf) for a stream
+    assert len(read) == 12 and read[0].shape == (48, 64, 3)
+    assert np.abs(read[5].astype(int) - frames[5]).mean() < 12  # lossy, but the same picture
+
+
+@pytest.mark.parametrize("frames, path, fps, message", [
+    ([], "clip.gif", 20.0, "at least one frame"),
+    (None, "clip.gif", 0.0, "fps must be positive"),
+    (None, "clip.gif", float("nan"), "fps must be positive"),
+    (None, "clip.avi", 20.0, "'.*clip.avi'"),
+])
+def test_write_animation_refuses_bad_arguments(tmp_path, frames, path, fps, message):
+    with pytest.raises(ValueError, match=message):
+        write_animation(_frames(3) if frames is None else frames, tmp_path / path, fps=fps)
+    assert not (tmp_path / path).exists()
+
+
+def test_mp4_without_imageio_ffmpeg_says_which_extra_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as if not installed
+    with pytest.raises(RuntimeError, match=r"bh8-gym\[video\]"):
+        write_animation(_frames(2), tmp_path / "clip.mp4")
