@@ -217,6 +217,27 @@ def test_cli_train_rejects_contradicting_arguments(tmp_path, capsys):
     assert "contradicts" in capsys.readouterr().err
 
 
+def test_cli_export_writes_a_checked_numpy_policy_that_names_its_env(tmp_path, capsys):
+    """`bh8 export RUN/final_model.zip`: an .npz beside the model that reproduces SB3's actions and
+    carries the run's env id (what `bh8 deploy` needs); a wrong suffix or a missing model exits 2."""
+    from bh8_gym.agents.policy_file import NumpyPolicy
+    from bh8_gym.agents.train import Trainer
+    from bh8_gym.cli import main
+
+    out = tmp_path / "run"
+    Trainer(_tiny_reach_config("PPO"), out, n_envs=1, seed=0, progress=False).run(64)
+    assert main(["export", str(out / "final_model.zip"), "--check", "64"]) == 0
+    printed = capsys.readouterr().out
+    assert "max |SB3 - numpy| action difference over 64 random observations" in printed
+    policy = NumpyPolicy(out / "final_model.npz")
+    assert policy.metadata["env_id"] == REACH and not policy.privileged
+
+    assert main(["export", str(out / "final_model.zip"), "-o", str(tmp_path / "policy.txt")]) == 2
+    assert "must end in .npz" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "missing.zip")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
 def _config_file(name: str) -> Path:
     from bh8_gym.agents.train import default_config_path
 
