@@ -165,15 +165,47 @@ class PlantParameters:
     wrist_orientation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)  # palm down (xyzw)
     wrist_max_force: float = 2000.0  # N: the arm is much stronger than the hand
 
+    @classmethod
+    def from_overrides(cls, overrides) -> "PlantParameters":
+        """The defaults with some fields replaced: `overrides` is a PlantParameters (returned as it
+        is) or a mapping of field names to values, as a TOML config or JSON env kwargs give them."""
+        if isinstance(overrides, cls):
+            return overrides
+        if not hasattr(overrides, "keys"):
+            raise PlantError(f"plant parameters must be PlantParameters or a dict of its fields, got {overrides!r}")
+        names = {item.name for item in fields(cls)}
+        unknown = sorted(str(name) for name in overrides if name not in names)
+        if unknown:
+            raise PlantError(f"PlantParameters has no field {', '.join(map(repr, unknown))}")
+        params = cls(**{name: tuple(value) if isinstance(value, list) else value for name, value in overrides.items()})
+        params.validate()
+        return params
+
     def validate(self) -> None:
-        if not 0.0 < self.time_step <= 0.002:
-            raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
         for item in fields(self):
             value = getattr(self, item.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise PlantError(f"{item.name} must be finite, got {value!r}")
-        if self.strain_offsets is not None and len(self.strain_offsets) != 3:
-            raise PlantError(f"strain_offsets needs 3 values, got {self.strain_offsets!r}")
+            if not _matches(item.type, value):
+                raise PlantError(f"{item.name} must be {item.type}, got {value!r}")
+        if not 0.0 < self.time_step <= 0.002:
+            raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
+        if self.solver_iterations < 1:
+            raise PlantError(f"solver_iterations must be at least 1, got {self.solver_iterations!r}")
+
+
+def _matches(annotation: str, value) -> bool:
+    """Whether `value` fits a PlantParameters annotation: float (finite; an int will do), int, bool,
+    tuple[T, ...] of a fixed length, each optionally "| None"."""
+    if annotation.endswith(" | None"):
+        return value is None or _matches(annotation[: -len(" | None")], value)
+    if annotation.startswith("tuple["):
+        kinds = [kind.strip() for kind in annotation[len("tuple["):-1].split(",")]
+        return (isinstance(value, tuple) and len(value) == len(kinds)
+                and all(_matches(kind, item) for kind, item in zip(kinds, value)))
+    if annotation == "bool":
+        return isinstance(value, bool)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer) if annotation == "int" else (int, float, np.integer, np.floating)):
+        return False
+    return annotation == "int" or math.isfinite(value)
 
 
 @dataclass(slots=True)  # slots: the step reads these fields many times per step

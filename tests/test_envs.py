@@ -356,6 +356,27 @@ def test_bad_configuration_raises():
         gym.make("BH8Grasp-v0", lcv=False, lcpg=False)
 
 
+def test_plant_parameters_as_a_dict_of_fields():
+    """`plant_parameters` takes PlantParameters or, as a TOML config or JSON gives it, a dict of its
+    fields (lists for tuples); a field that does not exist or a value of the wrong kind is refused
+    naming it, before any physics runs."""
+    env = gym.make("BH8Grasp-v0", plant_parameters={"solver_iterations": 200, "strain_offsets": [110, 120, 130]},
+                   randomize=False).unwrapped
+    try:
+        assert env.plant.params.solver_iterations == 200 and env.plant.params.strain_offsets == (110, 120, 130)
+        env.reset(seed=0)
+    finally:
+        env.close()
+    for bad, message in (({"solver_iteration": 5}, "no field 'solver_iteration'"), (5, "got 5"),
+                         ({"solver_iterations": 0}, "solver_iterations must be at least 1, got 0"),
+                         ({"solver_iterations": "many"}, "solver_iterations must be int, got 'many'"),
+                         ({"finger_friction": float("nan")}, "finger_friction must be float, got nan"),
+                         ({"table": 1}, "table must be bool, got 1"),
+                         ({"wrist_position": [0.0, 0.0]}, r"wrist_position must be tuple\[float, float, float\]")):
+        with pytest.raises(ValueError, match=message):
+            gym.make("BH8Grasp-v0", plant_parameters=bad)
+
+
 @pytest.mark.parametrize("name", ["randomize", "privileged", "lcpg", "lfv", "lft", "shake"])
 @pytest.mark.parametrize("value", ["false", 2, None])
 def test_on_off_keywords_refuse_non_booleans(name, value):

@@ -202,7 +202,8 @@ class BH8LoopEnv(gym.Env):
         from bh8_gym.firmware import Firmware
         from bh8_gym.plant import HandPlant, PlantParameters
 
-        self._base_parameters = self._plant_parameters(plant_parameters if plant_parameters is not None else PlantParameters())
+        self._base_parameters = self._plant_parameters(
+            PlantParameters() if plant_parameters is None else PlantParameters.from_overrides(plant_parameters))
         self._store = tempfile.TemporaryDirectory(prefix="bh8-env-store-")
         self.plant = HandPlant(params=self._base_parameters, seed=0, gui=render_mode == "human")
         self.firmware = Firmware(plant=self.plant, store_dir=self._store.name, profile=firmware_profile, seed=0)
