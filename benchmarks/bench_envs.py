@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
+import json
 import pstats
 import resource
 import time
@@ -115,10 +116,10 @@ def run_episodes(env, action, steps: int, seed: int) -> tuple[float, float, list
     return wall, sim_time, episode_steps, reset_wall / max(len(episode_steps) - 1, 1)
 
 
-def bench_single(env_id: str, steps: int, repeats: int, seed: int = 0) -> dict:
+def bench_single(env_id: str, steps: int, repeats: int, env_kwargs: dict, seed: int = 0) -> dict:
     """`repeats` rounds of: the env's steps, raw stepping of the same episodes, the env's steps again
     with PyBullet's calls timed (deterministic: the very same states). Ratios per round."""
-    env = gym.make(env_id).unwrapped
+    env = gym.make(env_id, **env_kwargs).unwrapped
     action = closing_policy(env)
     rounds = []
     for _ in range(repeats):
@@ -183,11 +184,12 @@ def bench_panda_gym(steps: int, repeats: int) -> dict | None:
             "ratio_range": (rounds[0][3], rounds[-1][3])}
 
 
-def bench_vector(env_id: str, n_envs: int, steps: int) -> dict:
+def bench_vector(env_id: str, n_envs: int, steps: int, env_kwargs: dict) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=SubprocVecEnv, wrapper_class=ContinuousActions)
+    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=SubprocVecEnv, wrapper_class=ContinuousActions,
+                       env_kwargs=env_kwargs)
     vec.reset()
     action = np.full((n_envs,) + vec.action_space.shape, 0.4, dtype=np.float32)
     start = time.perf_counter()
@@ -209,8 +211,8 @@ def peak_rss_mib(pid: int) -> float:
     raise RuntimeError(f"no VmHWM for process {pid}")
 
 
-def profile(env_id: str, steps: int) -> str:
-    env = gym.make(env_id).unwrapped
+def profile(env_id: str, steps: int, env_kwargs: dict) -> str:
+    env = gym.make(env_id, **env_kwargs).unwrapped
     action = closing_policy(env)
     env.reset(seed=0)
     profiler = cProfile.Profile()
@@ -232,9 +234,11 @@ def main() -> None:
     parser.add_argument("--envs", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3, help="rounds per env (the ratios' spread is the machine's noise)")
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--env-kwargs", type=json.loads, default={},
+                        help='JSON keywords for both envs, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\'')
     args = parser.parse_args()
     for env_id in ("BH8FingerReach-v0", "BH8Grasp-v0"):
-        r = bench_single(env_id, args.steps, args.repeats)
+        r = bench_single(env_id, args.steps, args.repeats, args.env_kwargs)
 
         def fmt(key, spec, scale=1.0):
             median, low, high = (scale * v for v in r[key])
@@ -252,7 +256,7 @@ def main() -> None:
             f"{fmt('in_env_overhead_ratio', '.2f')}, of which its other PyBullet calls alone "
             f"{fmt('pybullet_calls_ratio', '.2f')}"
         )
-        vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200))
+        vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200), args.env_kwargs)
         print(f"{env_id} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total, "
               f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -269,7 +273,7 @@ def main() -> None:
               f"{panda['pybullet_calls_ratio']:.2f}")
     if args.profile:
         for env_id in ("BH8Grasp-v0",):
-            print(profile(env_id, args.steps))
+            print(profile(env_id, args.steps, args.env_kwargs))
 
 
 if __name__ == "__main__":
