@@ -20,7 +20,12 @@ def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int
     kwargs = copy.deepcopy(dict(env_kwargs or {}))
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
-    env = gym.make(env_id, **kwargs)
+    try:
+        env = gym.make(env_id, **kwargs)
+    except TypeError as error:
+        if "unexpected keyword argument" not in str(error):
+            raise
+        raise ValueError(f"{env_id}: {error}") from None  # a typo in a config or --env-kwargs
     if continuous and not _is_float_box(env.action_space):
         from bh8_gym.envs.wrappers import ContinuousActions
 

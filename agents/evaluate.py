@@ -324,6 +324,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION]")
     parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode")
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on")
+    parser.add_argument("--env-kwargs", type=_json_object, default={}, metavar="JSON",
+                        help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\'')
     parser.add_argument("--out", type=Path, default=None, help="report directory (default: print only)")
     parser.add_argument("--curve", type=Path, default=None,
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
@@ -331,6 +333,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
                         help="another evaluation's --out directory on the same episodes: print the paired "
                              "comparison (exact McNemar test)")
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"not JSON ({error}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"must be a JSON object of env keywords, got {text!r}")
+    return value
 
 
 def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_files: list[str] | None,
@@ -364,8 +376,8 @@ def run(args: argparse.Namespace) -> int:
         env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
         if metadata.get("env_id") and env_id != metadata["env_id"]:
             raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
-        env_kwargs = evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), args.objects, args.object_files,
-                                           args.randomize)
+        env_kwargs = {**evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), args.objects, args.object_files,
+                                              args.randomize), **args.env_kwargs}
         comparison = (None if args.compare is None
                       else load_comparison_report(args.compare, args.seed, args.episodes))
         env = make_env(env_id, env_kwargs)

@@ -377,6 +377,29 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
     assert (out / "episodes.gif").read_bytes()[:6] == b"GIF89a"  # the README's main job writes one too
 
 
+def test_eval_cli_env_kwargs_reach_the_env_and_bad_ones_exit_2(tmp_path, capsys):
+    """--env-kwargs (JSON) goes on top of the policy's env keywords and is recorded in the report;
+    a typo in a keyword or a field, or text that is not a JSON object, exits 2 naming it."""
+    from bh8_gym.cli import main
+
+    policy = _export_untrained_reach_policy(tmp_path)
+    out = tmp_path / "report"
+    assert main(["eval", str(policy), "--episodes", "1", "--gif-episodes", "0", "--out", str(out),
+                 "--env-kwargs", '{"plant_parameters": {"solver_iterations": 120}}']) == 0
+    report = json.loads((out / "results.json").read_text())
+    assert report["env_kwargs"]["plant_parameters"] == {"solver_iterations": 120}
+    capsys.readouterr()
+    arguments = ["eval", str(policy), "--episodes", "1", "--gif-episodes", "0", "--env-kwargs"]
+    for text, message in (('{"plant_parameters": {"solver_iteration": 1}}', "no field 'solver_iteration'"),
+                          ('{"object_sett": "test"}', "object_sett")):
+        assert main([*arguments, text]) == 2
+        assert message in capsys.readouterr().err
+    for text, message in (("[1]", "JSON object"), ("{", "not JSON")):  # refused by argparse
+        with pytest.raises(SystemExit) as exit_info:
+            main([*arguments, text])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_eval_compare_pairs_two_reports_on_the_same_episodes(tmp_path, capsys):
     from bh8_gym.cli import main
 
