@@ -159,6 +159,17 @@ class Trainer:
             "config": config,
         }
 
+    def _check_env_kwargs(self) -> None:
+        """Build the training and evaluation envs once here, so that a typo in the config is an
+        error naming it rather than a SubprocVecEnv worker dying with a broken pipe."""
+        from bh8_gym.agents.env_factory import make_env
+
+        for table in ("env_kwargs", "eval_env_kwargs"):
+            try:
+                make_env(self.config["env_id"], self.config[table]).close()
+            except ValueError as error:
+                raise TrainingError(f"{table}: {error}") from None
+
     def _vec_env(self):
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -217,6 +228,7 @@ class Trainer:
         torch.set_num_threads(1)
         if total_timesteps < 1:
             raise ValueError(f"total_timesteps must be positive, got {total_timesteps}")
+        self._check_env_kwargs()
         has_checkpoint = (self.checkpoint_dir / "latest.zip").exists()
         if resume and not has_checkpoint:
             raise TrainingError(f"--resume: no checkpoint in {str(self.checkpoint_dir)!r}")

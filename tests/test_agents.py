@@ -238,6 +238,25 @@ def test_cli_export_writes_a_checked_numpy_policy_that_names_its_env(tmp_path, c
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_cli_train_refuses_a_config_typo_before_starting_workers(tmp_path, capsys):
+    """A misspelt env keyword or plant field in a config is a clear error naming it, with no run
+    directory left behind (it used to kill the SubprocVecEnv workers with a broken pipe)."""
+    from bh8_gym.cli import main
+
+    text = _config_file("ppo_reach.toml").read_text()
+    assert "[env_kwargs]\n" in text
+    typos = [(text.replace("[env_kwargs]\n", "[env_kwargs]\nrandomise = true\n", 1), "unexpected keyword argument 'randomise'"),
+             (text + "\n[eval_env_kwargs.plant_parameters]\nsolver_iterations = 0\n",
+              "eval_env_kwargs: solver_iterations must be at least 1, got 0")]
+    for config_text, message in typos:
+        config = tmp_path / "typo.toml"
+        config.write_text(config_text)
+        out = tmp_path / "run"
+        assert main(["train", "--config", str(config), "--out", str(out), "--timesteps", "64"]) == 2
+        assert message in capsys.readouterr().err
+        assert not out.exists()
+
+
 def _config_file(name: str) -> Path:
     from bh8_gym.agents.train import default_config_path
 
