@@ -93,6 +93,10 @@ IHIT_BACKOFF_COUNTS = 500.0
 # it will stay (FGET P after "M 1000" reads about 1000, not the lag of the decelerating motor).
 GOAL_SETTLE_VELOCITY_CPS = 500.0
 IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded simulated time
+# Simulated seconds `transact` waits for a command to finish. A motion can run for ever (a finger
+# jittering against an obstacle by more than STALL_DISTANCE_COUNTS never stalls, as on the hand);
+# the slowest legitimate one, a full close at MCV 1, takes about 70 s.
+TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
 LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)
 _EPS = 1e-9
@@ -145,6 +149,10 @@ POSITION_COMMANDS = frozenset(("HOME", "IO", "IC", "M"))  # these report ERR 16 
 
 # Per-motor run kinds of a motion command.
 _RUN_POSITION, _RUN_VELOCITY, _RUN_HI_SEEK, _RUN_HI_BACKOFF, _RUN_HI_HOME = range(5)
+
+
+class FirmwareBusyError(TimeoutError):
+    """`transact` gave up waiting: the command was still running after its simulated-time limit."""
 
 
 class _FirmwareError(Exception):
@@ -242,9 +250,14 @@ class Firmware:
         self._output.clear()
         return out
 
-    def run_until_idle(self) -> None:
-        """Advance simulated time until the firmware waits for input."""
-        self._run(None)
+    def run_until_idle(self, max_seconds: float | None = None) -> bool:
+        """Advance simulated time until the firmware waits for input, and return True; with
+        `max_seconds`, at most that much simulated time: False if a command is still running
+        (write ^C to abort a motion that does not end)."""
+        if max_seconds is not None and not max_seconds >= 0.0:
+            raise ValueError(f"max_seconds must be a non-negative number of seconds, got {max_seconds!r}")
+        self._run(None, None if max_seconds is None else self.time + max_seconds)
+        return self.idle
 
     def run_for(self, seconds: float) -> None:
         """Advance at most `seconds` of simulated time; the world keeps running while idle."""
@@ -252,10 +265,13 @@ class Firmware:
             raise ValueError(f"run_for needs a non-negative number of seconds, got {seconds!r}")
         self._run(self.time + seconds)
 
-    def transact(self, data: bytes) -> bytes:
-        """write + run_until_idle + read."""
+    def transact(self, data: bytes, max_seconds: float = TRANSACT_LIMIT_S) -> bytes:
+        """write + run_until_idle + read. Raises FirmwareBusyError if the command is still running
+        after `max_seconds` simulated seconds (it keeps running; ^C aborts it)."""
         self.write(data)
-        self.run_until_idle()
+        if not self.run_until_idle(max_seconds):
+            raise FirmwareBusyError(f"the hand was still executing {bytes(data)!r} after {max_seconds:g} simulated "
+                                    "seconds (a motion that does not end); write b'\\x03' (^C) to abort it")
         return self.read()
 
     @property
@@ -312,7 +328,8 @@ class Firmware:
 
     # ------------------------------------------------------------------ time and physics
 
-    def _run(self, deadline: float | None) -> None:
+    def _run(self, deadline: float | None, busy_limit: float | None = None) -> None:
+        """Run until `deadline` (None: until idle), or until `busy_limit` while a command runs."""
         while True:
             if self._task is None:
                 self._consume_input()
@@ -322,6 +339,9 @@ class Firmware:
                     return
             if deadline is not None and self._wake > deadline:
                 self._advance_to(deadline)
+                return
+            if busy_limit is not None and self._wake > busy_limit:
+                self._advance_to(busy_limit)
                 return
             self._advance_to(self._wake)
             try:

@@ -54,6 +54,8 @@ REALTIME_BURST_S = 0.02
 # Paced mode: when the physics falls further behind the wall clock than this, the excess is
 # forgiven, so a slow machine makes the hand slow rather than jerky in catch-up bursts.
 REALTIME_MAX_LAG_S = 0.25
+# Without --realtime, simulated seconds a command runs between looks at the line for ^C.
+UNPACED_SLICE_S = 0.25
 # Bytes kept for a client that is not reading. Past this the oldest are dropped, as a host UART
 # with nobody reading overruns; a reopening client flushes its input anyway (pyserial does).
 OUTPUT_BACKLOG_LIMIT = 1 << 20
@@ -340,7 +342,12 @@ class PtyServer:
             if data:
                 firmware.write(data)
                 self._running_firmware = True
-                firmware.run_until_idle()
+                # In slices, reading the line between them: a ^C can abort a motion that never
+                # ends (the firmware drops other bytes during a motion, as the hand does).
+                while not firmware.run_until_idle(UNPACED_SLICE_S) and not self._stopping:
+                    more = self._read_input()
+                    if more:
+                        firmware.write(more)
                 self._running_firmware = False
                 self._queue_output(firmware.read())
             self._flush_output()

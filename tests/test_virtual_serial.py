@@ -14,6 +14,7 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -169,8 +170,8 @@ class RunawayFirmware:
         pass
     def read(self):
         return b""
-    def run_until_idle(self):
-        while True:
+    def run_until_idle(self, max_seconds=None):
+        while True:  # not even its time limit ends it
             pass
     def shutdown(self):
         print("shut down", file=sys.stderr, flush=True)
@@ -290,6 +291,65 @@ def test_realtime_paces_motion_and_ctrl_c_aborts(tmp_path):
         assert _cpu_seconds(link.process.pid) - before <= 0.02
     finally:
         link.close()
+
+
+def _hand_around_a_fixed_post(store_dir):
+    """A hand whose HI never ends: palm down over a post fixed to the world that stands between the
+    fingers, so the spread cannot reach its stop and a finger keeps jittering against the post by
+    more than the stall window (§5.5 case 1 never fires; a real hand would run on too)."""
+    from bh8_gym.firmware import Firmware
+    from bh8_gym.plant import HandPlant
+
+    plant = HandPlant(seed=0)
+    plant.set_wrist_pose((0.0, 0.0, 0.225), (1.0, 0.0, 0.0, 0.0), teleport=True)
+    plant.add_object("box", (0.06, 0.06, 0.16), position=(0.0, 0.0, 0.12), fixed=True)
+    return plant, Firmware(plant=plant, store_dir=store_dir, seed=0)
+
+
+def test_a_motion_that_never_ends_is_a_clear_error_in_process(tmp_path):
+    """`Firmware.transact` gives up after its simulated-time limit with FirmwareBusyError instead
+    of hanging; the motion runs on until ^C aborts it (§5.5 case 4)."""
+    from bh8_gym.firmware import FirmwareBusyError
+
+    plant, firmware = _hand_around_a_fixed_post(tmp_path / "store")
+    try:
+        with pytest.raises(FirmwareBusyError, match=r"b'HI\\r' after 5 simulated seconds"):
+            firmware.transact(b"HI\r", max_seconds=5.0)
+        assert not firmware.idle and firmware.time == pytest.approx(5.0, abs=0.01)
+        assert firmware.transact(b"\x03") == b"HI\n\rERR 16384\n\r=> "
+        assert firmware.idle
+    finally:
+        firmware.shutdown()
+        plant.close()
+
+
+def test_unpaced_server_hears_ctrl_c_during_a_motion_that_never_ends(tmp_path):
+    """Without --realtime the server runs a command as fast as it can but looks at the line every
+    0.25 simulated s, so ^C aborts a motion that never ends instead of the server running it for ever."""
+    from bh8_gym.virtual_serial import PtyServer
+
+    plant, firmware = _hand_around_a_fixed_post(tmp_path / "store")
+    server = PtyServer(firmware)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        with serial.Serial(server.device, 9600, timeout=0.05) as port:
+            port.write(b"HI\r")
+            time.sleep(0.5)
+            assert port.read(100) == b""  # still initialising
+            port.write(b"\x03")
+            reply = bytearray()
+            deadline = time.monotonic() + 5.0
+            while not reply.endswith(PROMPT) and time.monotonic() < deadline:
+                reply += port.read(100)
+            assert bytes(reply) == b"HI\n\rERR 16384\n\r=> "
+    finally:
+        server.stop()
+        thread.join(timeout=10)
+        assert not thread.is_alive()
+        server.close()
+        firmware.shutdown()
+        plant.close()
 
 
 # -- objects ----------------------------------------------------------------------------------
