@@ -95,7 +95,8 @@ GOAL_SETTLE_VELOCITY_CPS = 500.0
 IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded simulated time
 # Simulated seconds `transact` waits for a command to finish. A motion can run for ever (a finger
 # jittering against an obstacle by more than STALL_DISTANCE_COUNTS never stalls, as on the hand);
-# the slowest legitimate one, a full close at MCV 1, takes about 70 s.
+# one that stalls ends within TSTOP (at most 65.5 s) of stalling, and a full close at the slowest
+# MCV takes about 4.4 s, so only an HI with many IHIT impacts at a huge TSTOP takes longer.
 TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
 LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)

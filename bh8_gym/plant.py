@@ -203,9 +203,11 @@ def _matches(annotation: str, value) -> bool:
                 and all(_matches(kind, item) for kind, item in zip(kinds, value)))
     if annotation == "bool":
         return isinstance(value, bool)
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer) if annotation == "int" else (int, float, np.integer, np.floating)):
+    if isinstance(value, bool):
         return False
-    return annotation == "int" or math.isfinite(value)
+    if annotation == "int":
+        return isinstance(value, (int, np.integer))
+    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
 
 
 @dataclass(slots=True)  # slots: the step reads these fields many times per step
