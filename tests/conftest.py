@@ -60,8 +60,10 @@ class InProcessLink(Link):
         self.firmware.write(data)
 
     def _pump(self) -> None:
-        self.firmware.run_until_idle()
+        idle = self.firmware.run_until_idle(max_seconds=300.0)  # a test must fail, not hang
         self._buffer += self.firmware.read()
+        if not idle:
+            raise TimeoutError(f"still busy after 300 simulated s; output so far {bytes(self._buffer)!r}")
 
     def read_until(self, terminator: bytes, timeout: float) -> bytes:
         self._pump()
