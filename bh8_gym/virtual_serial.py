@@ -424,7 +424,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--realtime", action="store_true",
         help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); "
-             "default: answer as soon as the simulated motion ends",
+             "default: answer as soon as the simulated motion ends (^C still aborts one)",
     )
     parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default=None,
                         help="firmware profile (default 4.3; with --env use --env-kwargs firmware_profile)")
