@@ -29,6 +29,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from bh8_gym.cli import json_object_argument
+
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
 # LFS counts above the no-load reading that mean a finger is loaded by contact. No-load readings
@@ -324,7 +326,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION]")
     parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode")
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on")
-    parser.add_argument("--env-kwargs", type=_json_object, default={}, metavar="JSON",
+    parser.add_argument("--env-kwargs", type=json_object_argument, default={}, metavar="JSON",
                         help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\'')
     parser.add_argument("--out", type=Path, default=None, help="report directory (default: print only)")
     parser.add_argument("--curve", type=Path, default=None,
@@ -333,16 +335,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
                         help="another evaluation's --out directory on the same episodes: print the paired "
                              "comparison (exact McNemar test)")
-
-
-def _json_object(text: str) -> dict:
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise argparse.ArgumentTypeError(f"not JSON ({error}): {text!r}") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"must be a JSON object of env keywords, got {text!r}")
-    return value
 
 
 def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_files: list[str] | None,

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
-import json
 import pstats
 import resource
 import time
@@ -35,6 +34,7 @@ import numpy as np
 import pybullet as p
 
 import bh8_gym  # noqa: F401
+from bh8_gym.cli import json_object_argument
 from bh8_gym.motion_control import VELOCITY_SCALE, sample_period
 from bh8_gym.parameters import coefficient
 from bh8_gym.plant import (
@@ -234,7 +234,7 @@ def main() -> None:
     parser.add_argument("--envs", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3, help="rounds per env (the ratios' spread is the machine's noise)")
     parser.add_argument("--profile", action="store_true")
-    parser.add_argument("--env-kwargs", type=json.loads, default={},
+    parser.add_argument("--env-kwargs", type=json_object_argument, default={},
                         help='JSON keywords for both envs, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\'')
     args = parser.parse_args()
     for env_id in ("BH8FingerReach-v0", "BH8Grasp-v0"):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 
 SUBCOMMANDS = {
@@ -19,6 +20,17 @@ SUBCOMMANDS = {
     "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),
     "deploy": ("bh8_gym.agents.deploy", "run a policy closed-loop on a hand over a serial port"),
 }
+
+
+def json_object_argument(text: str) -> dict:
+    """argparse `type=` for options such as --env-kwargs: a JSON object, else a usage error quoting it."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({error}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object of keyword arguments, got {text!r}")
+    return value
 
 
 def build_parser(load_subcommands: list[str] | None = None) -> argparse.ArgumentParser:

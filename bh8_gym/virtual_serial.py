@@ -43,6 +43,8 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from bh8_gym.cli import json_object_argument
+
 FIRMWARE_PROFILES = ("4.3", "4.4")
 
 # Paced mode: the longest wait between firmware advances while a command or LOOP is active. One
@@ -447,19 +449,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
              "store is the env's own fresh one (no --state, --object, --firmware)",
     )
     parser.add_argument(
-        "--env-kwargs", metavar="JSON", default=None, type=_json_object,
+        "--env-kwargs", metavar="JSON", default=None, type=json_object_argument,
         help='keyword arguments of the env as a JSON object, e.g. \'{"randomize": false, "object_set": "test"}\'',
     )
-
-
-def _json_object(text: str) -> dict:
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise argparse.ArgumentTypeError(f"not valid JSON ({error}): {text!r}") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"expected a JSON object of keyword arguments, got {text!r}")
-    return value
 
 
 @contextlib.contextmanager

@@ -413,7 +413,7 @@ def test_eval_cli_env_kwargs_reach_the_env_and_bad_ones_exit_2(tmp_path, capsys)
                           ('{"object_sett": "test"}', "object_sett")):
         assert main([*arguments, text]) == 2
         assert message in capsys.readouterr().err
-    for text, message in (("[1]", "JSON object"), ("{", "not JSON")):  # refused by argparse
+    for text, message in (("[1]", "expected a JSON object"), ("{", "not valid JSON")):  # refused by argparse
         with pytest.raises(SystemExit) as exit_info:
             main([*arguments, text])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err
