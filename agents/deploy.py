@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+from bh8_gym.cli import handling_signals
 from bh8_gym.envs.wrappers import unit_to_bytes
 
 EXIT_ACTIONS = ("GT", "T", "none")
@@ -198,12 +199,8 @@ class Deployment:
             if self._stop_request is None:
                 self._stop_request = f"terminated ({signal.Signals(signum).name})"
 
-        previous = {signum: signal.signal(signum, request_stop) for signum in (signal.SIGTERM, signal.SIGHUP)}
-        try:
+        with handling_signals((signal.SIGTERM, signal.SIGHUP), request_stop):
             yield
-        finally:
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
 
     def finish(self) -> None:
         """Zero velocity, leave LOOP, then the exit action (also after Ctrl-C or a limit)."""

@@ -7,8 +7,10 @@ pay for PyBullet and `bh8 serve` does not pay for torch.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
+import signal
 import sys
 
 SUBCOMMANDS = {
@@ -31,6 +33,18 @@ def json_object_argument(text: str) -> dict:
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(f"expected a JSON object of keyword arguments, got {text!r}")
     return value
+
+
+@contextlib.contextmanager
+def handling_signals(signums, handler):
+    """Within the block, `handler` handles each signal in `signums`; the previous handlers come
+    back afterwards (main thread only, as for `signal.signal`)."""
+    previous = {signum: signal.signal(signum, handler) for signum in signums}
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 def build_parser(load_subcommands: list[str] | None = None) -> argparse.ArgumentParser:

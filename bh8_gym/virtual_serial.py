@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from bh8_gym.cli import json_object_argument
+from bh8_gym.cli import handling_signals, json_object_argument
 
 FIRMWARE_PROFILES = ("4.3", "4.4")
 
@@ -532,21 +532,17 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 1
 
-    previous = {}
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        previous[signum] = signal.signal(signum, server.stop_from_signal_handler)
     try:
-        print(server.device, flush=True)
-        mode = "paced to the wall clock" if realtime else "unpaced"
-        linked = f" (link {server.link})" if server.link else ""
-        stored = f", store {store}" if store is not None else ""
-        served = f" ({description})" if description else ""
-        print(f"bh8 serve: firmware {firmware.profile}{served} on {server.device}{linked}, {mode}{stored}; "
-              "^C to stop", file=sys.stderr, flush=True)
-        server.serve_forever()
+        with handling_signals((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), server.stop_from_signal_handler):
+            print(server.device, flush=True)
+            mode = "paced to the wall clock" if realtime else "unpaced"
+            linked = f" (link {server.link})" if server.link else ""
+            stored = f", store {store}" if store is not None else ""
+            served = f" ({description})" if description else ""
+            print(f"bh8 serve: firmware {firmware.profile}{served} on {server.device}{linked}, {mode}{stored}; "
+                  "^C to stop", file=sys.stderr, flush=True)
+            server.serve_forever()
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
         try:
             close(firmware)
         finally:
