@@ -1,12 +1,12 @@
 """How robust the locked-worm squeeze is (manual §9.3.1, App. B FAQ A1: with the motor current
 removed the grasp stays): GC with HOLD 0 on a standing 150 g cylinder (or, `--shape sphere`, a
-150 g sphere on the table; `--shape post`, a post fixed to the world), then 0.5 s with the motors off, over a grid of radii and sideways
-offsets. A grasp "keeps its squeeze" when every
-finger's strain-gauge load stays above 15 and their sum above 70 % of the loads the stalled drives
-produced (the criterion of tests/test_integration_grasp.py, which runs the grid's centre cell).
-Also per cell: how far each finger was pushed open (encoder counts, from its furthest-closed
-position, counted once it has closed 1000 counts) while its own motor was still driving it closed, which a powered worm does not allow,
-and how far the object moved.
+150 g sphere on the table; `--shape post`, a post fixed to the world), then 0.5 s with the motors
+off, over a grid of radii and sideways offsets. A grasp "keeps its squeeze" when every finger's
+strain-gauge load stays above 15 and their sum above 70 % of the loads the stalled drives produced
+(the criterion of tests/test_integration_grasp.py, which runs the grid's centre cell). Also per
+cell: how far each finger was pushed open (encoder counts, from its furthest-closed position,
+counted once it has closed 1000 counts) while its own motor was still driving it closed, which a
+powered worm does not allow, how far the object moved, and how long the GC took.
 
 Prints one line per cell and the counts: figures of the plant model's quality, not its speed.
 
