@@ -54,6 +54,7 @@ constant below or documented here):
 from __future__ import annotations
 
 import copy
+import re
 from math import isnan
 
 from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
@@ -101,6 +102,7 @@ TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
 LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)
 _EPS = 1e-9
+_INTEGER = re.compile(r"[+-]?[0-9]+")
 
 _CTRL_C = 0x03
 _CR = 0x0D
@@ -485,7 +487,10 @@ class Firmware:
     # ------------------------------------------------------------------ supervisory commands
 
     def _execute(self, raw: bytes, overflow: bool) -> None:
-        text = raw.decode("latin-1").strip().upper()
+        # Case and whitespace by the bytes' ASCII rules, as the hand's 8-bit parser: str rules would
+        # make 0xDF ("ß") upper-case to "SS", a spread prefix, and 0xA0 a separator.
+        line = raw.strip().upper()
+        text = line.decode("latin-1")
         if overflow:
             self._reply(error=Status.INVALID_VALUE)
             return
@@ -495,8 +500,8 @@ class Firmware:
         i = 0
         while i < len(text) and text[i] in _PREFIX_MOTORS:
             i += 1
-        prefix, rest = text[:i], text[i:]
-        tokens = rest.split()
+        prefix = text[:i]
+        tokens = [token.decode("latin-1") for token in line[i:].split()]
         word = tokens[0] if tokens else ""
         args = tokens[1:]
         if word.startswith("?") and word != "?":
@@ -531,7 +536,7 @@ class Firmware:
 
     @staticmethod
     def _integer(text: str) -> int:
-        if not (text.isdigit() or (text[:1] in "+-" and text[1:].isdigit())):
+        if _INTEGER.fullmatch(text) is None:  # ASCII digits only: str.isdigit() accepts "²"
             raise _FirmwareError(Status.INVALID_VALUE)
         return int(text)
 

@@ -3,6 +3,8 @@
 Sources: the firmware brief's robustness rule ("no byte sequence makes it raise or hang");
 SPEC.md §2 (a CR yields a prompt), §5 (RealTime byte counting); manual §5.3-§5.4 (ranges).
 """
+import re
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -76,3 +78,23 @@ def test_random_bytes_in_loop_mode(machine, data):
     if data and data[0] not in b"CcAa\x03":
         assert out.startswith(b"\n\rERR 2048\n\r=> ")
     assert back_to_prompt(fw).endswith(b"=> ")
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(value=st.text(st.one_of(st.sampled_from("0123456789+- \xa0\xb2\xb3\xb9"),  # digits, signs, look-alikes
+                               st.characters(min_codepoint=0x20, max_codepoint=0xFF, exclude_characters="\x7f")),
+                     min_size=1, max_size=4))
+def test_any_latin1_value_is_a_number_or_err_128(machine, value):
+    """SPEC.md §2: a value that is not a number gets ERR 128 and sets nothing; only ASCII digits
+    with an optional sign are numbers (str.isdigit() also accepts "²", which used to raise)."""
+    fw, snap = machine
+    fw.restore(snap)
+    reply = fw.transact(b"1FSET DP " + value.encode("latin-1") + b"\r")
+    assert reply.endswith(b"\n\r=> ")
+    text = value.strip(" ")
+    valid = re.fullmatch(r"\+?[0-9]+", text) is not None and int(text) <= 65535
+    set_value = fw.transact(b"1FGET DP\r").split(b"\n\r")[1]
+    if valid:
+        assert b"ERR" not in reply and set_value == str(int(text)).encode()
+    else:
+        assert reply.endswith(b"\n\rERR 128\n\r=> ") and set_value == b"8500"

@@ -130,6 +130,23 @@ def test_status_codes(link, line, code):
     assert error_of(link.command(line)) == code
 
 
+@pytest.mark.parametrize("line", ["1FSET DP \xb2", "ERR \xb9", "PSET OTEMP 1\xb2", "FSET DP +\xb9"])
+def test_only_ascii_digits_are_numbers(link, line):
+    """SPEC.md §2: 128 = "not a number". Latin-1 superscripts ("²" is 0xB2) are not digits; they
+    used to raise inside the parser and end `bh8 serve`."""
+    assert error_of(link.command(line)) == 128
+    assert link.lines("1FGET DP") == ["8500"]
+
+
+@pytest.mark.parametrize("line", ["\xdf\xdfC", "\xdfFGET P", "1\xdfFGET P"])
+def test_non_ascii_letters_are_not_prefixes(link, line):
+    """Manual Table 2: the prefixes are 1, 2, 3, 4, G and S only. Upper-casing is ASCII's ("ß",
+    0xDF, is not "SS", which made line noise a spread prefix)."""
+    link.command("HI")
+    assert error_of(link.command(line)) == 32
+    assert link.lines("SFGET P") == ["0"]
+
+
 def test_failed_fset_sets_nothing(link):
     """Our all-or-nothing FSET (documented in firmware.py): a bad pair leaves every value alone."""
     assert error_of(link.command("FSET DP 100 MCV 5")) == 128
