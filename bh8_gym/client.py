@@ -118,7 +118,8 @@ class LoopFeedback(NamedTuple):
 
 
 def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[int, ...]]:
-    """A motor set as (GCL prefix, motor numbers in order); None is no prefix (the EN=1 motors).
+    """A motor set as (GCL prefix, motor numbers in order); None is no prefix (a movement command
+    then acts on the EN=1 motors, any other motor command on all four).
 
     Accepts Table 2 prefixes ("1", "G", "GS", "124", "3S", lower case too), a motor number, or an
     iterable of motor numbers 1..4. Raises ValueError naming a bad set.

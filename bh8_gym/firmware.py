@@ -149,6 +149,7 @@ COMMANDS = {
 }
 MOTOR_COMMANDS = frozenset(("C", "HI", "HOME", "IO", "IC", "LOOP", "M", "O", "TC", "TO"))
 POSITION_COMMANDS = frozenset(("HOME", "IO", "IC", "M"))  # these report ERR 16 (§5.5)
+MOVEMENT_COMMANDS = MOTOR_COMMANDS | {"T"}  # §5.2.1; without a prefix they act on the EN=1 motors
 
 # Per-motor run kinds of a motion command.
 _RUN_POSITION, _RUN_VELOCITY, _RUN_HI_SEEK, _RUN_HI_BACKOFF, _RUN_HI_HOME = range(5)
@@ -516,8 +517,10 @@ class Firmware:
             return
         if prefix:
             motors = tuple(sorted({m for c in prefix for m in _PREFIX_MOTORS[c]}))
-        else:
+        elif word in MOVEMENT_COMMANDS:  # §5.3.4 EN: "a motion command with no motor prefix"
             motors = tuple(m for m in MOTORS if self._motor_values[m]["EN"])
+        else:  # §5.2: "By default, all four motors are affected"
+            motors = MOTORS
         handler = getattr(self, "_cmd_" + _HANDLER_NAMES.get(word, word))
         try:
             if word in MOTOR_COMMANDS:

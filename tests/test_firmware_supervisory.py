@@ -245,11 +245,17 @@ def test_ctrl_c_aborts_a_motion(inproc_link):
     assert all(p < 5000 for p in positions)
 
 
-def test_enabled_motors_are_the_default_selection(link):
-    """Table 2 / §5.3.4 EN: no prefix acts on the motors with EN=1."""
+def test_enabled_motors_are_the_default_selection_of_movement_commands_only(link):
+    """§5.3.4 EN: "a motion command with no motor prefix will act on this motor"; §5.2: other motor
+    commands without a prefix act on all four (so FSET EN 1 undoes FSET EN 0)."""
     link.command("3FSET EN 0")
-    assert link.lines("FGET DP") == ["8500 8500 1575"]
-    assert link.lines("123SFGET DP") == ["8500 8500 8500 1575"]
+    assert link.lines("FGET DP EN") == ["8500 8500 8500 1575", "1 1 0 1"]
+    link.command("HI")
+    assert link.lines("FGET S") == ["0 0 4 0"]  # F3 was left out: still not initialised
+    link.command("FSET EN 0")
+    assert link.lines("FGET EN") == ["0 0 0 0"]
+    link.command("FSET EN 1")
+    assert link.lines("FGET EN") == ["1 1 1 1"]
 
 
 def test_over_temperature_fails_motor_commands(link):
