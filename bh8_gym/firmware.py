@@ -10,10 +10,12 @@ constant below or documented here):
 
 - Framing (SPEC.md §2): every character is echoed as it arrives, the CR is not; the reply is
   "\\n\\r", output lines each ending "\\n\\r", then the prompt "=> ". An error reply is
-  "\\n\\rERR <n>\\n\\r=> ". Lines may be lower case. LF (0x0A) is ignored, so a terminal sending
-  CR LF works. Backspace (0x08) and DEL (0x7F) remove the last character of the line and echo
-  "\\b \\b". A line longer than `MAX_LINE_LENGTH` characters keeps being echoed but its excess is
-  dropped, and the line then fails with ERR 128 (invalid value).
+  "\\n\\rERR <n>\\n\\r=> ". Lines may be lower case (ASCII letters; 0xDF is not "SS"), numbers are
+  ASCII digits with an optional sign. LF (0x0A) is ignored in supervisory mode, so a terminal sending
+  CR LF works, but not after LOOP: there the LF is the first block header (ERR 2048). Backspace
+  (0x08) and DEL (0x7F) remove the last character of the line and echo "\\b \\b". A line longer
+  than `MAX_LINE_LENGTH` characters keeps being echoed but its excess is dropped, and the line then
+  fails with ERR 128 (invalid value).
 - ^C (0x03) in supervisory mode while no command runs discards the partial line and replies
   "\\n\\r=> ". While a motion runs the firmware only looks for ^C (§5.5 case 4): every motor
   terminates and the reply is "ERR 16384"; other bytes arriving during a motion are discarded (the
@@ -47,7 +49,12 @@ constant below or documented here):
 - The RealTime cycle_hook runs at the start of every cycle, before the control block's time.
 - FLISTV/FLISTAV/PLISTV/PLISTAV lines are "NAME v1 v2 ..."; FLIST/PLIST lines are
   "NAME<padding>description"; FGET/PGET lines are values only (SPEC.md §2 example).
-- Only FGET P sets the RealTime "reported position" (§6.2.3); FLISTV does not.
+- Only FGET P sets the RealTime "reported position" (§6.2.3); FLISTV does not. With LFDPD set, the
+  reported position becomes the present one every cycle: the part of a change LFDP cannot carry,
+  overflow or the remainder below LFDPC, is discarded (§5.4.3 LFDPD: "any position change that
+  cannot be sent in a delta position datum is discarded").
+- LFAP is an unsigned word (SPEC.md §5): a position below 0 (a finger opened past its home, e.g.
+  right after HI) is sent as 0, above 65535 as 65535; FGET P reports the signed value.
 - FSET/PSET are all-or-nothing: if any pair is bad nothing is set and the codes of all bad pairs
   are summed (§5.1.3: "the sum of the status codes encountered").
 """

@@ -134,8 +134,12 @@ class LoopLayout:
         ) == (other.motors, other.flags, other.lft, other.firmware)
 
     def control_block_size(self, header: bytes | int) -> int:
-        """Bytes in a control block with this header, the header included."""
-        code = header if isinstance(header, int) else header[0]
+        """Bytes in a control block with this header (b'C', b'c', b'A', b'a', b'\\x03' or its byte
+        value), the header included."""
+        code = header[0] if isinstance(header, (bytes, bytearray)) and len(header) == 1 else header
+        if not isinstance(code, int) or code not in VALID_HEADERS:
+            raise ValueError(f"invalid RealTime header {header!r}; expected one of b'C', b'c', b'A', b'a', b'\\x03' "
+                             "or their byte values")
         return 1 + (self.control_payload_size if code in HEADERS_WITH_DATA else 0)
 
     def encode_control(self, values: Sequence[int], header: bytes = HEADER_CONTROL_FEEDBACK) -> bytes:
@@ -153,7 +157,10 @@ class LoopLayout:
         for value, (lo, hi), (motor, name) in zip(values, self._control_limits, self.control_fields):
             if not lo <= value <= hi:
                 raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
-        return header + self._control_struct.pack(*values)
+        try:
+            return header + self._control_struct.pack(*values)
+        except struct.error:  # in range but not an integer (1.5, np.float64(3.0))
+            raise ValueError(f"control values must be integers, got {list(values)!r}") from None
 
     def decode_control(self, payload: bytes) -> tuple[int, ...]:
         """The control values of a block's data bytes (header excluded)."""
@@ -170,7 +177,10 @@ class LoopLayout:
         for value, (lo, hi), (motor, name) in zip(values, self._feedback_limits, self.feedback_fields):
             if not lo <= value <= hi:
                 raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
-        return ACK + self._feedback_struct.pack(*values)
+        try:
+            return ACK + self._feedback_struct.pack(*values)
+        except struct.error:
+            raise ValueError(f"feedback values must be integers, got {list(values)!r}") from None
 
     def decode_feedback(self, block: bytes) -> tuple[int, ...]:
         """The feedback values of a whole block (starting with b'*'), in `feedback_fields` order."""

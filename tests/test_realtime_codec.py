@@ -3,6 +3,7 @@
 the codec's own tables."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -147,6 +148,28 @@ def test_headers_without_data_and_bad_headers():
         layout.encode_control((), b"X")
     with pytest.raises(ValueError, match="expected 8 control values"):
         layout.encode_control((1, 2), HEADER_CONTROL_FEEDBACK)
+
+
+@pytest.mark.parametrize("value", [1.5, 3.0, np.float64(3.0)])
+def test_non_integer_values_are_refused_with_value_error(value):
+    """Table 4: the data are bytes and words; an in-range non-integer is a ValueError naming the
+    values, as out-of-range ones are (it was struct.error)."""
+    layout = LoopLayout((1,), MotorFlags())
+    with pytest.raises(ValueError, match="must be integers"):
+        layout.encode_control((value, 0))
+    with pytest.raises(ValueError, match="must be integers"):
+        layout.encode_feedback((value, 0, 0, 0))
+
+
+def test_control_block_size_by_header():
+    """§6.2.1: C and c carry the control data, A, a and ^C none; anything else is refused."""
+    layout = LoopLayout()
+    assert layout.control_payload_size == 8
+    for header, size in ((b"C", 9), (b"c", 9), (b"A", 1), (b"a", 1), (b"\x03", 1), (ord("C"), 9), (ord("a"), 1)):
+        assert layout.control_block_size(header) == size
+    for bad in (b"X", b"", b"CC", "C", 0x58, None):
+        with pytest.raises(ValueError, match="invalid RealTime header"):
+            layout.control_block_size(bad)
 
 
 def test_malformed_feedback_blocks_are_refused():
