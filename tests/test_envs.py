@@ -319,6 +319,68 @@ def test_object_sets_and_user_files():
         env.close()
 
 
+def test_one_object_file_is_taken_whole():
+    """object_files="part.urdf" is one file (it was iterated character by character)."""
+    import pybullet_data
+
+    env = gym.make("BH8Grasp-v0", object_files=f"{pybullet_data.getDataPath()}/cube_small.urdf:1.2", randomize=False)
+    try:
+        env.reset(seed=0)
+        assert env.unwrapped.scene.episode.spec.name == "cube_small"
+    finally:
+        env.close()
+
+
+def test_feedback_coefficients_are_applied_to_lfv_and_lfdp():
+    """§6.2.2-§6.2.3: the host multiplies LFV by LFVC and LFDP by LFDPC; the observation is in
+    counts whatever the coefficients (the same motion gives about the same entries)."""
+    observed = {}
+    for coefficient in (1, 4):
+        env = gym.make("BH8Grasp-v0", lfv=True, lfdp=True, lfvc=coefficient, lfdpc=coefficient,
+                       randomize=False).unwrapped
+        try:
+            env.reset(seed=0)
+            for _ in range(20):
+                obs, _, _, _, info = env.step(np.array([40, 255] * 4, dtype=np.int16))
+            values = env.layout.decode_feedback(info["feedback_block"])
+            fields = env.observation_fields
+            for (motor, name), value in zip(env.layout.feedback_fields, values):
+                if name == "LFDP":
+                    assert obs[fields.index(f"LFDP{motor}")] == pytest.approx(value * coefficient / 128)
+            observed[coefficient] = np.array([obs[fields.index(f"{name}1")] for name in ("LFV", "LFDP")])
+        finally:
+            env.close()
+    assert observed[1][1] > 0.2  # F1 closes several counts per cycle
+    # equal within one quantum of the coarser data: LFVC / 16 and LFDPC / 128
+    assert abs(observed[4][0] - observed[1][0]) <= 4 / 16 and abs(observed[4][1] - observed[1][1]) <= 4 / 128
+
+
+def test_a_closed_env_says_so():
+    env = gym.make("BH8FingerReach-v0").unwrapped
+    env.reset(seed=0)
+    env.close()
+    env.close()
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):
+        env.reset(seed=0)
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):
+        env.step(np.zeros(4, dtype=np.int16))
+
+
+def test_continuous_actions_wrapper_is_rebuilt_from_its_spec_and_passes_check_env():
+    """Gymnasium's wrapper contract (RecordConstructorArgs): gym.make(wrapped.spec) rebuilds it."""
+    from gymnasium.utils.env_checker import check_env
+
+    env = ContinuousActions(gym.make("BH8FingerReach-v0"))
+    rebuilt = gym.make(env.spec)
+    try:
+        assert isinstance(rebuilt, ContinuousActions)
+        assert env.spec.additional_wrappers[-1].name == "ContinuousActions"
+        check_env(env, skip_render_check=True)
+    finally:
+        env.close()
+        rebuilt.close()
+
+
 def test_randomisation_is_seeded_and_within_its_ranges():
     base = PlantParameters()
     ranges = RandomizationRanges()

@@ -19,7 +19,8 @@ Observation (float32, `observation_fields` names every entry):
 
 - the decoded feedback fields the LOOP flags enable, coefficients applied, scaled to about
   [-1, 1]: LFV × LFVC / 16 (counts per sample, full speed ≈ 14), (LFS − 128) / 128, LFAP / full
-  range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP / 128, LFT / 1000 (tenths °C; 4.4: /100);
+  range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP × LFDPC / 128 (counts), LFT / 1000
+  (tenths °C; 4.4: /100);
 - the previous action, each datum mapped to [-1, 1] (`wrappers.bytes_to_unit`);
 - the fraction of the episode's time elapsed (the host's clock since its first block), then what
   the subclass adds (the arm's phase for grasping, the targets for reaching).
@@ -176,7 +177,7 @@ class BH8LoopEnv(gym.Env):
             elif name == "LFAP":
                 offsets.append(0.0), scales.append(1.0 / FULL_RANGE_COUNTS[motor])
             elif name == "LFDP":
-                offsets.append(0.0), scales.append(1.0 / DELTA_FULL_SCALE)
+                offsets.append(0.0), scales.append(lfdpc / DELTA_FULL_SCALE)
             else:  # LFT
                 offsets.append(0.0), scales.append(1.0 / TEMPERATURE_SCALE[firmware_profile])
         self._fb_offset = np.array(offsets)
@@ -271,6 +272,8 @@ class BH8LoopEnv(gym.Env):
 
     def _cycle(self, block: bytes) -> tuple[int, ...]:
         firmware = self.firmware
+        if firmware is None:
+            raise gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
         firmware.write(block)
         firmware.run_until_idle()
         feedback = firmware.read()
@@ -375,6 +378,8 @@ class BH8LoopEnv(gym.Env):
         `keep_io=True` keeps the firmware's pending serial bytes across the restore (the served
         LOOP's "*" and any control block that came with the LOOP command).
         """
+        if self.firmware is None:
+            raise gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
         super().reset(seed=seed)
         self.scene.remove_object()
         self.firmware.restore(self._snapshot, keep_io=keep_io)

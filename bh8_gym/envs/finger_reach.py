@@ -10,7 +10,7 @@ LOOP gain (firmware.py: "a motor whose LCPG flag is 0 keeps FPG as its gain"), s
 script sets `FPG loop_gain`. Default 40: U = 40/4 × velocity error saturates at full duty for
 an error of 12.7 counts per sample, so the motor follows the commanded velocity briskly without
 the action having to carry a gain byte; the factory FPG 10 leaves the fingers sluggish.
-Feedback: LFAP only. At 38400 baud a step is 4.65 ms (5 + 9 bytes + 1 ms); a 1 s episode is 216 steps.
+Feedback: LFAP only. At 38400 baud a step is 4.65 ms (5 + 9 bytes + 1 ms); a 1 s episode is 215 steps.
 
 Reward: "error" = −mean |target − position| / full range per step; "success" = +bonus when every
 motor is within its tolerance, which ends the episode (terminated).

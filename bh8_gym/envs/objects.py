@@ -267,7 +267,9 @@ class ObjectSet:
         raise ValueError(f"object_set must be one of {OBJECT_SETS}, got {name!r}")
 
     @classmethod
-    def from_files(cls, files: Iterable[str | os.PathLike | ObjectSpec]) -> "ObjectSet":
+    def from_files(cls, files: Iterable[str | os.PathLike | ObjectSpec] | str | os.PathLike | ObjectSpec) -> "ObjectSet":
+        if isinstance(files, (str, os.PathLike, ObjectSpec)):  # one file, not its characters
+            files = (files,)
         specs = tuple(parse_object_file(f) for f in files)
         if not specs:
             raise ValueError("object_files is empty")

@@ -42,7 +42,7 @@ def bytes_to_unit(values: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.n
     return ((np.asarray(values, dtype=np.float64) - centre) / half).astype(np.float32)
 
 
-class ContinuousActions(gym.ActionWrapper):
+class ContinuousActions(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Actions are float32 in [-1, 1], one per control datum; mapped to the LOOP bytes by `unit_to_bytes`.
 
     Out-of-range floats are clipped (Gaussian policies overshoot); NaN/inf or a wrong shape raise
@@ -50,7 +50,8 @@ class ContinuousActions(gym.ActionWrapper):
     """
 
     def __init__(self, env: gym.Env):
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self)  # so gym.make(wrapped.spec) rebuilds it
+        gym.ActionWrapper.__init__(self, env)
         space = env.action_space
         if not isinstance(space, gym.spaces.Box) or not np.issubdtype(space.dtype, np.integer):
             raise ValueError(f"ContinuousActions wraps an integer Box action space, got {space!r}")
