@@ -131,6 +131,8 @@ def finger_angles(counts: float, model: str = "262", breakaway_counts: float | N
     After breakaway at `breakaway_counts` (Equation 5 and wiki Equation 4): the inner link stays at
     its breakaway angle and the outer link's angle to the palm is still M/93.75°, so its angle
     relative to the inner link is M/93.75° - Mb/125°.
+    Each link stops at its joint stops (inner 0-140°, outer 0-48° relative): counts past them, which
+    the motor cannot reach, give the angle at the stop.
     """
     scale = encoder_scale(model)
     per_deg = scale.finger_counts_per_inner_degree  # inner-link counts per degree (125 on the 262)
@@ -139,7 +141,9 @@ def finger_angles(counts: float, model: str = "262", breakaway_counts: float | N
         inner_deg = counts / per_deg
     else:
         inner_deg = breakaway_counts / per_deg
-    return radians(inner_deg), radians(outer_abs_deg - inner_deg)
+    inner = min(max(radians(inner_deg), INNER_RANGE[0]), INNER_RANGE[1])
+    outer = min(max(radians(outer_abs_deg) - inner, OUTER_RANGE[0]), OUTER_RANGE[1])
+    return inner, outer
 
 
 def spread_angle(counts: float, model: str = "262") -> float:

@@ -708,8 +708,11 @@ class HandPlant:
             heat += torque * torque
         if state.drive_on[3]:
             limit = state.drive_fraction[3] * prm.motor_peak_torque
-            torque = tau[SPREAD_INDEX[0]] * self._spread_torque_scale
-            torque = limit if torque > limit else (-limit if torque < -limit else torque)
+            if state.held[SPREAD_INDEX[0]]:  # stalled against a stop (the stop, not the motor, holds the joint)
+                torque = limit if state.drive_velocity[3] > 0.0 else -limit
+            else:
+                torque = tau[SPREAD_INDEX[0]] * self._spread_torque_scale
+                torque = limit if torque > limit else (-limit if torque < -limit else torque)
             heat += torque * torque
         else:
             torque = 0.0

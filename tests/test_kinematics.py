@@ -82,6 +82,18 @@ def test_encoder_conversions_after_breakaway(model):
     assert np.degrees(inner + outer) == pytest.approx(80.0 * 4.0 / 3.0)  # 4/375 per count on the 262
 
 
+def test_angles_stop_at_the_joint_stops():
+    """Table 8 / §9.5: inner 0-140°, outer 0-48° relative. After breakaway at 7,500 counts the outer
+    link reaches its stop at 10,125 counts (M/93.75° − 60° = 48°); more counts keep it there."""
+    inner, outer = kin.finger_angles(12_000.0, breakaway_counts=7_500.0)
+    assert np.degrees(inner) == pytest.approx(60.0) and np.degrees(outer) == pytest.approx(48.0)
+    inner, outer = kin.finger_angles(10_000.0, breakaway_counts=7_500.0)
+    assert np.degrees(outer) == pytest.approx(10_000 / 93.75 - 60.0)
+    inner, outer = kin.finger_angles(-500.0)
+    assert inner == 0.0 and outer == 0.0
+    assert np.degrees(kin.finger_angles(20_000.0)[0]) == pytest.approx(140.0)
+
+
 def test_unknown_model_and_finger_raise():
     """Bad arguments raise ValueError naming the value."""
     with pytest.raises(ValueError, match="283"):

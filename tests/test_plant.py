@@ -227,6 +227,19 @@ def test_holding_torque_warms_the_hand():
         assert holding.temperature - idle.temperature == pytest.approx(expected_rise, rel=0.05)
 
 
+def test_spread_stalled_at_its_stop_draws_its_torque_and_warms_the_hand():
+    """§2: "Idling the spread motor, when possible, will help keep the temperature lower": a spread
+    motor pushing into its stop is stalled at its torque limit like a finger's, and heats alike
+    (it read ~0 N·m: the stop, not the motor, held the joint)."""
+    with HandPlant(seed=0) as idle, HandPlant(seed=0) as holding:
+        holding.set_drive(4, -MCV_100, 1.0)  # into the open stop (0 counts)
+        run(idle, 2.0)
+        run(holding, 2.0)
+        assert holding.motor_torques()[3] == pytest.approx(-0.05)
+        expected_rise = 2.0 * (0.05 / 0.0083) ** 2 / holding.params.heat_capacity
+        assert holding.temperature - idle.temperature == pytest.approx(expected_rise, rel=0.1)
+
+
 def test_fingers_at_full_spread_close_without_touching(plant):
     """SPEC §1: at full spread the fingers lie beside F3 and close in parallel without touching each other."""
     plant.set_drive(4, 14_648.0, 1.0)
