@@ -65,6 +65,9 @@ REALTIME_MARGIN_S = 0.25
 RESYNC_QUIET_S = 0.1
 # Resynchronising gives up when the hand keeps talking for longer than this without a prompt.
 RESYNC_DRAIN_LIMIT_S = 5.0
+# A reply still streaming is waited for at most this many bytes' time past its budget (the longest,
+# A? or FLISTAV, is about 2 KB): a line that trickles bytes without a prompt cannot hang a call.
+REPLY_STREAM_LIMIT_BYTES = 8192
 # Attempts of ^C + CR before resynchronisation gives up. Each attempt pushes two bytes into a
 # control block the hand may still be waiting to complete (lost bytes in RealTime).
 RESYNC_ATTEMPTS = 4
@@ -72,7 +75,7 @@ RESYNC_ATTEMPTS = 4
 # Commands whose reply comes when the motion ends (§5.5); everything else is answered at once.
 MOTION_COMMANDS = frozenset({"HI", "C", "O", "M", "HOME", "IO", "IC", "TC", "TO"})
 _ERR_LINE = re.compile(r"^ERR\s*(\d+)\s*$")
-_COMMAND_WORD = re.compile(r"^\s*([1-4GSgs]*)([A-Za-z?]+)")
+_COMMAND_WORD = re.compile(r"^\s*([1-4GSgs]*)\s*([A-Za-z?]+)")  # the firmware takes "G C" as "GC"
 _PARAMETER_NAME = re.compile(r"^[A-Z][A-Z0-9]*$")
 _VERSION = re.compile(r"(\d+)\.(\d+)")
 
@@ -137,7 +140,11 @@ def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[i
                 )
             selected.update(MOTOR_PREFIX_CHARS[char])
     else:
-        items = (motors,) if isinstance(motors, int) else tuple(motors)
+        try:
+            items = (motors,) if isinstance(motors, int) else tuple(motors)
+        except TypeError:
+            raise ValueError(f"invalid motor set {motors!r}: give a prefix such as 'G', a motor number or "
+                             "motor numbers") from None
         for item in items:
             if isinstance(item, bool) or not isinstance(item, int) or item not in (1, 2, 3, 4):
                 raise ValueError(f"invalid motor set {motors!r}: {item!r} is not a motor number 1..4")
@@ -221,7 +228,7 @@ class BarrettHand:
         firmware: str | None = None,
         motion_timeout: float = DEFAULT_MOTION_TIMEOUT_S,
     ):
-        if baudrate not in VALID_BAUD_RATES:
+        if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate not in VALID_BAUD_RATES:
             raise ValueError(f"baudrate must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {baudrate!r}")
         if firmware not in (None, "4.3", "4.4"):
             raise ValueError(f"firmware must be '4.3', '4.4' or None (ask VERS), got {firmware!r}")
@@ -235,6 +242,7 @@ class BarrettHand:
         self._rx = bytearray()
         self._needs_resync = True
         self._port_failed = False
+        self._closed = False  # by close()/disconnect(): for good, never reopened
         self._layout: LoopLayout | None = None
         if isinstance(port, str):
             self._port_name = port
@@ -270,6 +278,7 @@ class BarrettHand:
 
     def disconnect(self) -> None:
         """Leave RealTime mode if active (best effort) and close the port if this client opened it."""
+        self._closed = True
         if self._port is None:
             return
         if self._layout is not None and not self._port_failed:
@@ -366,6 +375,7 @@ class BarrettHand:
         gap = self.timeout
         now = time.monotonic()
         deadline = now + budget_s
+        limit = deadline + REPLY_STREAM_LIMIT_BYTES * BITS_PER_BYTE / self.baudrate
         start = 0
         while True:
             index = rx.find(terminator, start)
@@ -384,7 +394,7 @@ class BarrettHand:
             if chunk:
                 rx += chunk
                 if now + gap > deadline:
-                    deadline = now + gap
+                    deadline = min(now + gap, limit)
 
     def _read_exact(self, count: int, budget_s: float, what: str) -> bytes:
         rx = self._rx
@@ -429,8 +439,11 @@ class BarrettHand:
 
         Sends ^C (leaves RealTime mode, aborts a running motion; idle it only gets a prompt,
         SPEC.md §2), discards the hand's output until the line is quiet, then checks that a bare
-        CR gets exactly "\\n\\r=> ". A port that failed is reopened first (if this client opened it).
+        CR gets exactly "\\n\\r=> ". A port that failed is reopened first (if this client opened it);
+        a client closed with close()/disconnect() stays closed (HandConnectionError).
         """
+        if self._closed:
+            raise HandConnectionError(f"{self._port_name!r} was closed with close(); make a new BarrettHand")
         if self._port_failed or self._port is None or not getattr(self._port, "is_open", True):
             self._reopen()
         self._layout = None
@@ -588,7 +601,10 @@ class BarrettHand:
 
     @staticmethod
     def _names(names) -> list[str]:
-        items = names.split() if isinstance(names, str) else list(names)
+        try:
+            items = names.split() if isinstance(names, str) else list(names)
+        except TypeError:
+            raise ValueError(f"parameter names must be a string or strings, got {names!r}") from None
         if not items:
             raise ValueError("give at least one parameter name")
         return [_check_parameter_name(name) for name in items]
@@ -719,7 +735,7 @@ class BarrettHand:
 
         Not saved: PSAVE afterwards makes the rate survive a power cycle (and the next connection
         must then open the port at that rate)."""
-        if rate not in VALID_BAUD_RATES:
+        if isinstance(rate, bool) or not isinstance(rate, int) or rate not in VALID_BAUD_RATES:
             raise ValueError(f"baud rate must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {rate!r}")
         self._ensure_supervisory()
         line = f"PSET BAUD {rate // 100}"

@@ -154,12 +154,12 @@ class LoopLayout:
             raise ValueError(
                 f"expected {len(self.control_fields)} control values {self.control_fields}, got {len(values)}"
             )
-        for value, (lo, hi), (motor, name) in zip(values, self._control_limits, self.control_fields):
-            if not lo <= value <= hi:
-                raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
         try:
+            for value, (lo, hi), (motor, name) in zip(values, self._control_limits, self.control_fields):
+                if not lo <= value <= hi:
+                    raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
             return header + self._control_struct.pack(*values)
-        except struct.error:  # in range but not an integer (1.5, np.float64(3.0))
+        except (struct.error, TypeError):  # not a number ("5"), or in range but not an integer (1.5)
             raise ValueError(f"control values must be integers, got {list(values)!r}") from None
 
     def decode_control(self, payload: bytes) -> tuple[int, ...]:
@@ -174,12 +174,12 @@ class LoopLayout:
             raise ValueError(
                 f"expected {len(self.feedback_fields)} feedback values {self.feedback_fields}, got {len(values)}"
             )
-        for value, (lo, hi), (motor, name) in zip(values, self._feedback_limits, self.feedback_fields):
-            if not lo <= value <= hi:
-                raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
         try:
+            for value, (lo, hi), (motor, name) in zip(values, self._feedback_limits, self.feedback_fields):
+                if not lo <= value <= hi:
+                    raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
             return ACK + self._feedback_struct.pack(*values)
-        except struct.error:
+        except (struct.error, TypeError):
             raise ValueError(f"feedback values must be integers, got {list(values)!r}") from None
 
     def decode_feedback(self, block: bytes) -> tuple[int, ...]:

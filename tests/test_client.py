@@ -337,9 +337,11 @@ def test_close_releases_the_port_and_never_moves_the_hand(scripted):
     with contextlib.closing(bh):
         pass
     assert hand.lines_received == before
-    with pytest.raises(HandConnectionError, match="closed"):
-        bh.close_motors("G")
-    assert hand.lines_received == before
+    written = bytes(port.written)
+    for call in (lambda: bh.close_motors("G"), lambda: bh.get("P"), bh.resync, lambda: bh.close_motors("G")):
+        with pytest.raises(HandConnectionError, match="closed"):  # for good: never reopened
+            call()
+    assert hand.lines_received == before and bytes(port.written) == written
 
 
 @pytest.mark.parametrize(
@@ -350,7 +352,8 @@ def test_close_releases_the_port_and_never_moves_the_hand(scripted):
      (lambda b: b.set_global(BAUD=384), "set_baud"), (lambda b: b.command("LOOP"), "start_loop"),
      (lambda b: b.command("PSET LFT 1 BAUD 96"), "set_baud"), (lambda b: b.command("FGET P\rHI"), "'FGET P\\rHI'"),
      (lambda b: b.set_baud(9601), "9601"), (lambda b: b.configure_loop("G", MCV=1), "MCV"),
-     (lambda b: b.close_motors("7"), "'7'")],
+     (lambda b: b.close_motors("7"), "'7'"), (lambda b: b.close_motors(1.5), "1.5"), (lambda b: b.get(5), "5"),
+     (lambda b: b.set_baud(38400.0), "38400.0"), (lambda b: b.command("1 LOOP"), "start_loop")],
 )
 def test_bad_arguments_raise_value_error_naming_the_value(scripted, call, fragment):
     """Bad input to the Python API gets a specific exception naming the value, and nothing is sent."""
@@ -410,15 +413,44 @@ def test_hand_silent_mid_reply_times_out_then_recovers(scripted):
 
 
 def test_motion_commands_get_the_motion_budget(scripted):
-    """Time-outs sized to the command: a 0.6 s motion passes (motion_timeout 1 s), a 0.6 s FGET
-    does not (timeout 0.3 s)."""
+    """Time-outs sized to the command: a 0.6 s motion passes (motion_timeout 1 s), also written with
+    a space after the prefix as the firmware allows, a 0.6 s FGET does not (timeout 0.3 s)."""
     bh, hand, _ = scripted
     hand.delay_next_reply = 0.6
     bh.close_motors("G")
     hand.delay_next_reply = 0.6
+    bh.command("G C")
+    hand.delay_next_reply = 0.6
     with pytest.raises(HandTimeout):
         bh.get("P", "1")
     assert bh.get("P", "2") == {"P": [2000]}
+
+
+def test_a_reply_that_trickles_without_a_prompt_cannot_hang_a_call(scripted, monkeypatch):
+    """A line that keeps sending bytes but never a prompt (noise, a wrong rate) times out at the
+    budget plus REPLY_STREAM_LIMIT_BYTES' transfer time (the wait was pushed on by every byte)."""
+    bh, hand, port = scripted
+    monkeypatch.setattr(client_module, "REPLY_STREAM_LIMIT_BYTES", 96)  # 0.1 s at 9600 baud
+    answer = hand.receive
+
+    def trickle(data: bytes) -> bytes:
+        hand.receive = answer
+        now = time.monotonic()
+        port._pending.extend((now + 0.05 * k, b".") for k in range(1, 400))  # 20 s of dots
+        return b""
+
+    hand.receive = trickle
+    started = time.monotonic()
+    with pytest.raises(HandTimeout):
+        bh.get("P", "1")
+    assert time.monotonic() - started < 1.0  # 0.3 s budget + 0.1 s
+    port._pending.clear()
+    assert bh.get("P", "1") == {"P": [1000]}
+
+
+def test_constructor_refuses_a_float_baud_rate():
+    with pytest.raises(ValueError, match="9600.0"):
+        BarrettHand(FakePort(ScriptedHand()), baudrate=9600.0)
 
 
 def test_garbage_before_reply_is_a_protocol_error_then_recovers(scripted):
@@ -576,6 +608,16 @@ MPE = 50  # §5.3.4 default maximum position error
 def sim(tmp_path):
     with BarrettHand(f"bh8sim://?seed=0&state={tmp_path / 'store'}") as bh:
         yield bh
+
+
+def test_sim_a_closed_client_never_reopens_its_port(sim):
+    """close() is for good also on a port the client opened itself (it used to reopen it on the
+    next call after the first refusal, and move the hand)."""
+    sim.close()
+    for call in (lambda: sim.get("P"), sim.resync, lambda: sim.close_motors("G"), lambda: sim.get("P")):
+        with pytest.raises(HandConnectionError, match="closed"):
+            call()
+    assert sim._port is None
 
 
 def test_sim_administrative_and_parameter_calls(sim):

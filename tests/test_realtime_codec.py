@@ -150,7 +150,7 @@ def test_headers_without_data_and_bad_headers():
         layout.encode_control((1, 2), HEADER_CONTROL_FEEDBACK)
 
 
-@pytest.mark.parametrize("value", [1.5, 3.0, np.float64(3.0)])
+@pytest.mark.parametrize("value", [1.5, 3.0, np.float64(3.0), "3", None])
 def test_non_integer_values_are_refused_with_value_error(value):
     """Table 4: the data are bytes and words; an in-range non-integer is a ValueError naming the
     values, as out-of-range ones are (it was struct.error)."""
