@@ -217,7 +217,8 @@ class BarrettHand:
     to ask VERS when it is first needed.
 
     The constructor resynchronises with the hand (^C, CR, prompt), so a hand that does not answer
-    raises HandTimeout at once.
+    raises HandTimeout from the constructor, after RESYNC_ATTEMPTS tries of about `timeout` each
+    (~8 s at the defaults).
     """
 
     def __init__(
