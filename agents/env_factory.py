@@ -22,6 +22,10 @@ def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int
         kwargs["render_mode"] = render_mode
     try:
         env = gym.make(env_id, **kwargs)
+    except (gym.error.NameNotFound, gym.error.VersionNotFound, gym.error.NamespaceNotFound,
+            gym.error.DeprecatedEnv) as error:
+        raise ValueError(f"unknown environment {env_id!r} ({error}); bh8-gym has BH8Grasp-v0 and "
+                         "BH8FingerReach-v0") from None
     except TypeError as error:
         if "unexpected keyword argument" not in str(error):
             raise

@@ -118,21 +118,25 @@ class StrainTracker:
 
 
 def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: bool = True,
-                 baseline=None) -> list[EpisodeResult]:
+                 baseline=None, progress: bool = False) -> list[EpisodeResult]:
     """Run `n_episodes` (seeds seed, seed+1, ...) with `policy.predict` or a scripted `baseline`.
 
     `env`: a single env (see env_factory.make_env). `baseline`: an object with
     `run_episode(env, seed) -> (return, length, info)` for baselines that use supervisory GCL.
     With `deterministic=False` a policy's exploration noise is drawn anew for every episode
-    (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them).
+    (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them). `progress`
+    shows a bar on a terminal (`bh8 eval`).
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
+    from tqdm import tqdm
+
+    episodes = tqdm(range(n_episodes), desc="episodes", unit="ep", disable=None if progress else True, leave=False)
     base = env.unwrapped
     tracker = StrainTracker(base.layout)
     cycle_seconds = float(base.cycle_seconds)
     results = []
-    for episode in range(n_episodes):
+    for episode in episodes:
         tracker.reset()
         if baseline is not None and hasattr(baseline, "run_episode"):
             total, length, info, extra_seconds, grasp_time = baseline.run_episode(env, seed + episode, tracker)
@@ -372,13 +376,18 @@ def run(args: argparse.Namespace) -> int:
                                               args.randomize), **args.env_kwargs}
         comparison = (None if args.compare is None
                       else load_comparison_report(args.compare, args.seed, args.episodes))
+        if args.out is not None:  # before the episodes, not after them
+            try:
+                args.out.mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise ValueError(f"--out {str(args.out)!r} cannot be a report directory: {error}") from None
         env = make_env(env_id, env_kwargs)
         if args.baseline is not None:
             from bh8_gym.agents.baselines import make_baseline
 
             baseline = make_baseline(args.baseline, env)
         try:
-            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline)
+            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline, progress=True)
         finally:
             env.close()
         paired = None
@@ -392,7 +401,8 @@ def run(args: argparse.Namespace) -> int:
     table = per_object_table(results)
     label = f"baseline {args.baseline}" if baseline is not None else str(args.policy)
     grasp = "n/a" if summary["mean_grasp_time"] is None else f"{summary['mean_grasp_time']:.3f} s"
-    print(f"{label} on {env_id} ({args.object_files or args.objects}), {summary['episodes']} episodes")
+    objects = f" ({args.object_files or args.objects})" if env_id.startswith("BH8Grasp") else ""
+    print(f"{label} on {env_id}{objects}, {summary['episodes']} episodes")
     print(f"success rate {summary['success_rate']:.3f} (95% Wilson CI {summary['success_ci_low']:.3f}-"
           f"{summary['success_ci_high']:.3f}); mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; "
           f"peak strain mean {summary['mean_peak_strain']} max {summary['max_peak_strain']}")
@@ -402,7 +412,6 @@ def run(args: argparse.Namespace) -> int:
               f"{paired['only_ours']}, only that one {paired['only_theirs']}, both {paired['both']}, neither "
               f"{paired['neither']}; exact McNemar p = {paired['mcnemar_p']:.3g}")
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "table.md").write_text(table + "\n")
         (args.out / "results.json").write_text(json.dumps(
             {"summary": summary, "episodes": [asdict(r) for r in results], "env_id": env_id, "seed": args.seed,

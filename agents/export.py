@@ -36,11 +36,33 @@ def max_action_difference(sb3_policy, numpy_policy: NumpyPolicy, n_observations:
     return float(np.max(np.abs(np.asarray(expected, dtype=np.float64) - actual)))
 
 
+def check_run_metadata(sb3_policy, model_path: Path) -> None:
+    """The run.json found beside the model must exist and describe it: eval and deploy rebuild the
+    observation layout from it, so a missing or foreign one makes an unusable export."""
+    from bh8_gym.agents.env_factory import make_env
+
+    env_id = sb3_policy.metadata.get("env_id")
+    if env_id is None:
+        raise PolicyFileError(f"no run.json beside {str(model_path)!r} (or one folder up): the export would not know "
+                              "its environment; export the model from the run directory `bh8 train` wrote")
+    env = make_env(env_id, sb3_policy.metadata.get("env_kwargs", {}))
+    try:
+        expected = env.observation_space.shape
+    finally:
+        env.close()
+    trained = sb3_policy.model.observation_space.shape
+    if trained != expected:
+        raise PolicyFileError(f"{str(model_path)!r} takes observations of shape {trained}, but the run.json beside it "
+                              f"describes {env_id} with shape {expected}: it belongs to another run")
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="trained SB3 model (.zip), e.g. RUN/best_model.zip")
     parser.add_argument("-o", "--out", type=Path, default=None, help="output .npz (default: MODEL with .npz)")
-    parser.add_argument("--check", type=int, default=256, help="random observations to compare (0: skip)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE)
+    parser.add_argument("--check", type=int, default=256,
+                        help="random observations on which numpy and SB3 actions are compared (0: skip; default %(default)s)")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+                        help="largest accepted |SB3 - numpy| action difference (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,13 +76,17 @@ def run(args: argparse.Namespace) -> int:
         if not args.model.exists():
             raise FileNotFoundError(f"model {str(args.model)!r} does not exist")
         sb3_policy = SB3Policy(args.model)
+        check_run_metadata(sb3_policy, args.model)
         metadata = {key: sb3_policy.metadata[key] for key in ("env_id", "env_kwargs", "eval_env_kwargs", "privileged")
                     if key in sb3_policy.metadata}
         export_sb3_policy(sb3_policy.model, out, metadata=metadata)
         numpy_policy = NumpyPolicy(out)
-    except (PolicyFileError, FileNotFoundError) as exc:
+    except (PolicyFileError, FileNotFoundError, ValueError) as exc:
         print(f"bh8 export: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"bh8 export: cannot write {str(out)!r}: {exc}", file=sys.stderr)
+        return 1
     print(f"exported {args.model} -> {out} ({numpy_policy.observation_dim} observations, "
           f"{numpy_policy.action_dim} actions, {len(numpy_policy.weights)} layers)")
     if args.check > 0:

@@ -47,6 +47,9 @@ def atomic_write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             np.savez(handle, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would keep other accounts (deploying it) out
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -65,6 +68,14 @@ class NumpyPolicy:
             raise PolicyFileError(f"cannot read policy file {str(self.path)!r}: {exc}") from exc
         if "format" not in arrays or str(arrays["format"]) != FORMAT:
             raise PolicyFileError(f"{str(self.path)!r} is not a {FORMAT} file")
+        try:
+            self._read(arrays)
+        except PolicyFileError:
+            raise
+        except (KeyError, ValueError, TypeError) as exc:  # json's errors are ValueErrors
+            raise PolicyFileError(f"{str(self.path)!r} is damaged ({type(exc).__name__}: {exc}); export it again") from None
+
+    def _read(self, arrays: dict[str, np.ndarray]) -> None:
         self.metadata: dict[str, Any] = json.loads(str(arrays["metadata"]))
         n_layers = int(self.metadata["n_layers"])
         self.weights = [arrays[f"layer{i}_weight"].astype(np.float64) for i in range(n_layers)]
@@ -246,7 +257,8 @@ class SB3Policy:
             try:
                 self.model = algorithm.load(path, device=device)
                 break
-            except (KeyError, ValueError, TypeError, RuntimeError) as exc:
+            # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model)
+            except (AssertionError, KeyError, ValueError, TypeError, RuntimeError) as exc:
                 errors.append(f"{algorithm.__name__}: {exc}")
         else:
             raise PolicyFileError(f"cannot load SB3 model {str(path)!r}: {'; '.join(errors)}")

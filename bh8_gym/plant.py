@@ -38,6 +38,8 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -911,21 +913,21 @@ class HandPlant:
         position = [float(v) for v in position]
         orientation = [float(v) for v in orientation]
         if kind == "urdf":
-            body = p.loadURDF(str(self._existing(path)), position, orientation, globalScaling=scale,
-                              useFixedBase=fixed, physicsClientId=cid)
+            with file_errors_named(kind, path):
+                body = p.loadURDF(str(self._existing(path)), position, orientation, globalScaling=scale,
+                                  useFixedBase=fixed, physicsClientId=cid)
         else:
             if kind == "mesh":
                 mesh = str(self._existing(path))
-                shape = dict(shapeType=p.GEOM_MESH, fileName=mesh, meshScale=[scale] * 3)
-                collision = p.createCollisionShape(**shape, physicsClientId=cid)
-                visual = p.createVisualShape(**shape, rgbaColor=color, physicsClientId=cid)
+                geometry, length = dict(shapeType=p.GEOM_MESH, fileName=mesh, meshScale=[scale] * 3), None
             else:
                 geometry = self._primitive(kind, size)
                 length = geometry.pop("length", None)
+            with file_errors_named(kind, path):
                 collision = p.createCollisionShape(**geometry, physicsClientId=cid)
-                if length is not None:  # createCollisionShape takes `height`, createVisualShape `length`
-                    geometry["length"] = geometry.pop("height")
-                visual = p.createVisualShape(**geometry, rgbaColor=color, physicsClientId=cid)
+            if length is not None:  # createCollisionShape takes `height`, createVisualShape `length`
+                geometry["length"] = geometry.pop("height")
+            visual = p.createVisualShape(**geometry, rgbaColor=color, physicsClientId=cid)
             body = p.createMultiBody(0.0 if fixed else mass, collision, visual, position, orientation, physicsClientId=cid)
         for link in range(-1, p.getNumJoints(body, physicsClientId=cid)):
             p.changeDynamics(body, link, lateralFriction=friction, rollingFriction=1e-4, spinningFriction=1e-3, physicsClientId=cid)
@@ -1036,6 +1038,17 @@ class HandPlant:
             self.close()
         except Exception:
             pass
+
+
+@contextmanager
+def file_errors_named(kind: str, path) -> Iterator[None]:
+    """PyBullet's bare "Cannot load URDF file" / "createCollisionShape failed" as a PlantError (a
+    ValueError) naming the file `kind` ("urdf" or "mesh") `path`."""
+    try:
+        yield
+    except p.error as error:
+        raise PlantError(f"PyBullet cannot load the {kind} file {str(path)!r} ({error}): not a valid "
+                         f"{'URDF' if kind == 'urdf' else 'OBJ/STL mesh'}?") from None
 
 
 def parse_object_spec(spec: str) -> dict:

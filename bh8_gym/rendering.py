@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,15 +132,22 @@ def run(args) -> int:
         params.wrist_position = (0.0, 0.0, float(args.wrist_height))
     elif args.object:
         params.wrist_position = (0.0, 0.0, 0.20)  # palm a few cm above a table-top object
+    problem = None
     if not 0.0 <= args.spread <= 180.0:
-        print(f"bh8 render: --spread must be 0..180 degrees, got {args.spread}")
+        problem = f"--spread must be 0..180 degrees, got {args.spread}"
+    elif not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):
+        problem = f"--width and --height must be 16..4096 pixels, got {args.width} x {args.height}"
+    elif args.output.suffix.lower() != ".png" or args.output.is_dir():
+        problem = f"--output must be a .png file, got {str(args.output)!r}"
+    if problem is not None:
+        print(f"bh8 render: {problem}", file=sys.stderr)
         return 2
     with HandPlant(params=params, seed=args.seed) as plant:
         try:
             for spec in args.object:
                 plant.add_object_from_spec(spec)
         except PlantError as error:
-            print(f"bh8 render: {error}")
+            print(f"bh8 render: {error}", file=sys.stderr)
             return 2
         plant.set_drive(4, 14_648.0 if args.spread > 0 else -14_648.0, 1.0)
         target = args.spread * 17.5
@@ -153,6 +161,10 @@ def run(args) -> int:
                 plant.step()
         target_point = tuple(float(v) for v in _camera_for(plant, None).target)
         camera = Camera(target=target_point, distance=args.distance, yaw=args.yaw, pitch=args.pitch)
-        save_png(args.output, render_frame(plant, args.width, args.height, camera))
+        try:
+            save_png(args.output, render_frame(plant, args.width, args.height, camera))
+        except OSError as error:
+            print(f"bh8 render: cannot write {str(args.output)!r}: {error}", file=sys.stderr)
+            return 1
     print(args.output)
     return 0

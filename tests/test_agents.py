@@ -6,10 +6,12 @@ Kept fast: a few hundred env steps of training on BH8FingerReach-v0, a few episo
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -236,6 +238,57 @@ def test_cli_export_writes_a_checked_numpy_policy_that_names_its_env(tmp_path, c
     assert "must end in .npz" in capsys.readouterr().err
     assert main(["export", str(tmp_path / "missing.zip")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    mode = (out / "final_model.npz").stat().st_mode & 0o777
+    assert mode == 0o666 & ~_umask()  # readable by the account that deploys it (mkstemp gave 0600)
+
+    lonely = tmp_path / "lonely" / "model.zip"  # no run.json beside it: the export could not name its env
+    lonely.parent.mkdir()
+    lonely.write_bytes((out / "final_model.zip").read_bytes())
+    assert main(["export", str(lonely)]) == 2
+    assert "no run.json" in capsys.readouterr().err
+    (lonely.parent / "run.json").write_text(json.dumps({"env_id": "BH8Grasp-v0", "env_kwargs": {}, "algorithm": "PPO"}))
+    assert main(["export", str(lonely)]) == 2  # a foreign run.json: a grasp layout for a reach model
+    assert "belongs to another run" in capsys.readouterr().err
+    not_sb3 = tmp_path / "not_sb3.zip"
+    with zipfile.ZipFile(not_sb3, "w") as archive:
+        archive.writestr("readme.txt", "hello")
+    assert main(["export", str(not_sb3)]) == 2
+    assert "cannot load SB3 model" in capsys.readouterr().err
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def test_damaged_npz_is_a_policy_file_error(tmp_path):
+    from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError
+
+    path = _export_untrained_reach_policy(tmp_path)
+    with np.load(path) as data:
+        arrays = {name: data[name] for name in data.files if name != "layer1_bias"}
+    np.savez(tmp_path / "damaged.npz", **arrays)
+    with pytest.raises(PolicyFileError, match="damaged.*layer1_bias"):
+        NumpyPolicy(tmp_path / "damaged.npz")
+
+
+def test_cli_eval_refuses_bad_env_ids_object_files_and_out_paths_before_running(tmp_path, capsys):
+    """Clear one-line errors (exit 2) instead of tracebacks; --out is checked before the episodes."""
+    from bh8_gym.cli import main
+
+    assert main(["eval", "--baseline", "loop", "--env", "NoSuch-v0", "--episodes", "1"]) == 2
+    assert "unknown environment 'NoSuch-v0'" in capsys.readouterr().err
+    not_a_urdf = tmp_path / "bad.urdf"
+    not_a_urdf.write_text("this is not xml")
+    assert main(["eval", "--baseline", "loop", "--episodes", "1", "--object-files", str(not_a_urdf)]) == 2
+    assert "cannot load the urdf file" in capsys.readouterr().err
+    a_file = tmp_path / "report"
+    a_file.write_text("")
+    started = time.monotonic()
+    assert main(["eval", "--baseline", "loop", "--episodes", "50", "--out", str(a_file)]) == 2
+    assert "cannot be a report directory" in capsys.readouterr().err
+    assert time.monotonic() - started < 10  # refused before 50 episodes ran
 
 
 def test_cli_train_refuses_a_config_typo_before_starting_workers(tmp_path, capsys):

@@ -35,12 +35,18 @@ def test_bh8_render_writes_a_png_of_the_hand_closed_on_an_object(tmp_path, capsy
 @pytest.mark.parametrize("arguments, message", [
     (["--spread", "200"], "--spread must be 0..180"),
     (["--object", "teapot:3"], "teapot"),
+    (["--width", "0"], "--width and --height must be 16..4096"),
+    (["--object", "{tmp}/bad.urdf"], "cannot load the urdf file"),
 ])
 def test_bh8_render_refuses_bad_arguments_with_exit_code_2(tmp_path, capsys, arguments, message):
+    """Errors on stderr, one line, no traceback, nothing written."""
+    (tmp_path / "bad.urdf").write_text("not xml")
     path = tmp_path / "never.png"
-    assert main(["render", "-o", str(path), *arguments]) == 2
-    assert message in capsys.readouterr().out
+    assert main(["render", "-o", str(path), *[a.format(tmp=tmp_path) for a in arguments]]) == 2
+    assert message in capsys.readouterr().err
     assert not path.exists()
+    assert main(["render", "-o", str(tmp_path)]) == 2  # a directory, not a .png
+    assert "--output must be a .png file" in capsys.readouterr().err
 
 
 def test_gif_keeps_every_frame_at_the_frame_rate(tmp_path):

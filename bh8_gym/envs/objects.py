@@ -37,6 +37,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from bh8_gym.plant import file_errors_named
+
 PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
 FILE_KINDS = ("urdf", "mesh")
 OBJECT_SETS = ("primitives", "train", "test", "mixed", "all")
@@ -313,7 +315,8 @@ class ObjectLoader:
             geometry = dict(shapeType=p.GEOM_CAPSULE, radius=spec.size[0] / 2, height=spec.size[1] - spec.size[0])
         else:
             geometry = dict(shapeType=p.GEOM_MESH, fileName=spec.path, meshScale=[spec.scale] * 3)
-        collision = p.createCollisionShape(physicsClientId=self.client, **geometry)
+        with file_errors_named(spec.kind, spec.path):
+            collision = p.createCollisionShape(physicsClientId=self.client, **geometry)
         if collision < 0:
             raise ValueError(f"PyBullet could not build a collision shape for {spec!r}")
         visual = -1
@@ -329,7 +332,8 @@ class ObjectLoader:
         """A body for `spec` at a pose (base frame = the shape's centre for primitives and meshes)."""
         p = self._p
         if spec.kind == "urdf":
-            body = p.loadURDF(spec.path, position, orientation, globalScaling=spec.scale, physicsClientId=self.client)
+            with file_errors_named(spec.kind, spec.path):
+                body = p.loadURDF(spec.path, position, orientation, globalScaling=spec.scale, physicsClientId=self.client)
         else:
             collision, visual = self._shapes_for(spec)
             body = p.createMultiBody(spec.mass, collision, visual, position, orientation, physicsClientId=self.client)
