@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import signal
 import sys
 import threading
@@ -38,7 +39,9 @@ import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, load_policy
 from bh8_gym.cli import handling_signals
+from bh8_gym.client import VALID_BAUD_RATES
 from bh8_gym.envs.wrappers import unit_to_bytes
+from bh8_gym.status import BH8Error
 
 EXIT_ACTIONS = ("GT", "T", "none")
 # The host clock the observation's elapsed time uses: wall seconds since the first block (a real
@@ -107,7 +110,10 @@ class Deployment:
         self._action = np.zeros(len(fields), dtype=np.int64)
         self.clock = clock
         self.layout = None
-        self.cycles = 0
+        self.blocks = 0  # blocks exchanged: the "A" block is cycle 0 in the log, policy cycle k is cycle k
+        self.policy_cycles = 0
+        self.hand_error = None  # the port or hand failure that ended the run (BH8Error), if one did
+        self.safe_exit_error = None  # why finish() could not leave the hand safe (BH8Error), if it could not
         self._stop_request = None  # set by a signal handler: why to stop at the next cycle boundary
 
     def _log(self, record: dict) -> None:
@@ -133,9 +139,9 @@ class Deployment:
 
     def _exchange(self, values, header: bytes = b"C"):
         feedback = self.hand.update_raw(values, header)
-        self._log({"cycle": self.cycles, "t": time.monotonic(),
+        self._log({"cycle": self.blocks, "t": time.monotonic(),
                    "control": self.hand.last_control_block.hex(), "feedback": self.hand.last_feedback_block.hex()})
-        self.cycles += 1
+        self.blocks += 1
         return feedback
 
     def _check_limits(self, feedback) -> None:
@@ -146,7 +152,10 @@ class Deployment:
             raise SafetyStop(f"temperature {feedback.temperature:.1f} C above the limit {self.max_temperature} C")
 
     def run(self, cycles: int) -> str:
-        """Run up to `cycles` policy cycles; returns why it stopped. Always leaves the hand safe."""
+        """Run up to `cycles` policy cycles; returns why it stopped, which the log's stop record
+        also holds. Always tries to leave the hand safe. A port or hand failure is a stop too: its
+        reason names the failed cycle, `hand_error` holds it, and `safe_exit_error` is set if
+        finish() failed as well (a dead port cannot be reopened for the zero block, ^C and exit action)."""
         if cycles < 1:
             raise ValueError(f"cycles must be positive, got {cycles!r}")
         reason = "done"
@@ -162,7 +171,7 @@ class Deployment:
                 elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
                            else time.monotonic() - start)
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed)
-                while self.cycles <= cycles and self._stop_request is None:  # the "A" block was cycle 0
+                while self.policy_cycles < cycles and self._stop_request is None:
                     self._check_limits(feedback)
                     unit, _ = self.policy.predict(observation, deterministic=True)
                     if not np.all(np.isfinite(unit)):
@@ -171,6 +180,7 @@ class Deployment:
                     np.clip(self._action, self._clamp_low, self._clamp_high, out=self._action)
                     previous[:] = self._action
                     feedback = self._exchange(previous.tolist())
+                    self.policy_cycles += 1
                     elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
                                else time.monotonic() - start)
                     observation = base.observation_from_feedback(feedback.values, previous, elapsed)
@@ -181,9 +191,19 @@ class Deployment:
                 reason = f"safety stop: {stop}"
             except KeyboardInterrupt:
                 reason = "interrupted (Ctrl-C)"
+            except BH8Error as error:
+                self.hand_error = error
+                reason = f"hand/port error at cycle {self.blocks}: {error}"  # the block being exchanged
             finally:
-                self.finish()
-        self._log({"event": "stop", "reason": reason, "cycles": self.cycles, "t": time.monotonic()})
+                try:
+                    self.finish()
+                except BH8Error as error:
+                    # Kept apart from the reason: after a dead port this is only the failed reopen.
+                    self.safe_exit_error = error
+        stop = {"event": "stop", "reason": reason, "cycles": self.blocks, "t": time.monotonic()}
+        if self.safe_exit_error is not None:
+            stop["safe_exit_error"] = str(self.safe_exit_error)
+        self._log(stop)
         return reason
 
     @contextlib.contextmanager
@@ -215,16 +235,67 @@ class Deployment:
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
 
 
+def _integer_within(low: int, high: int | None = None, meaning: str = ""):
+    """argparse `type=`: an integer in low..high (no upper bound if None), else a usage error quoting it."""
+    expected = f"an integer {low}..{high}" if high is not None else f"an integer >= {low}"
+    expected += f" ({meaning})" if meaning else ""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
+        return value
+
+    return parse
+
+
+def _finite_float(text: str) -> float:
+    """argparse `type=`: a finite number (a NaN or infinite limit would never trip)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+EXIT_STATUS_HELP = """\
+the same blocks, byte for byte, as `bh8 eval` of the policy (on `bh8 serve --env ID --seed N`):
+  --max-velocity 127 --max-strain 255 --on-exit none --clock cycles (no clamp, strain stop or exit action)
+
+exit status:
+  0    the cycles ran; the hand was left safe
+  1    the port or the hand failed (connecting, in the setup or mid-run: the stop record in the log
+       names the cycle), or the safe-exit commands could not be sent
+  2    usage error: a bad option value, an unwritable log, or a policy deploy refuses
+  3    stopped early, safely: a safety limit, a non-finite policy output, Ctrl-C, SIGTERM or SIGHUP
+  130  Ctrl-C while connecting or in the setup, before the first block
+"""
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EXIT_STATUS_HELP
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter  # keeps the epilog's lines
     parser.add_argument("--port", required=True, help="serial port or pyserial URL (e.g. /dev/ttyUSB0, bh8sim://)")
     parser.add_argument("--policy", required=True, type=Path, help="policy file (.npz export or SB3 .zip)")
-    parser.add_argument("--baud", type=int, default=9600, help="the hand's current rate (default 9600)")
-    parser.add_argument("--cycles", type=int, default=None,
-                        help="policy cycles after the first 'A' block (default: one env episode at the nominal latency)")
-    parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"), help="JSONL block log")
-    parser.add_argument("--max-velocity", type=int, default=DEFAULT_MAX_VELOCITY_BYTE, help="|LCV| limit (bytes; 127: no clamp, -128..127)")
-    parser.add_argument("--max-strain", type=int, default=DEFAULT_MAX_STRAIN, help="finger strain limit (0-255)")
-    parser.add_argument("--max-temperature", type=float, default=DEFAULT_MAX_TEMPERATURE_C, help="degrees C")
+    parser.add_argument("--baud", type=int, choices=VALID_BAUD_RATES, default=9600, metavar="RATE",
+                        help="the hand's current rate, one of %(choices)s (default %(default)s, after power-up)")
+    parser.add_argument("--cycles", type=_integer_within(1), default=None,
+                        help="policy cycles after the first 'A' block, >= 1 "
+                             "(default: one env episode at the nominal latency)")
+    parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"),
+                        help="JSONL block log (default %(default)s)")
+    parser.add_argument("--max-velocity", type=_integer_within(0, NO_VELOCITY_CLAMP, "LCV byte magnitude"),
+                        default=DEFAULT_MAX_VELOCITY_BYTE,
+                        help="|LCV| limit in bytes, 0..127; 127: no clamp, -128..127 (default %(default)s)")
+    parser.add_argument("--max-strain", type=_integer_within(0, 255, "8-bit strain gauge"), default=DEFAULT_MAX_STRAIN,
+                        help="stop when a finger's strain exceeds this, 0..255 (default %(default)s)")
+    parser.add_argument("--max-temperature", type=_finite_float, default=DEFAULT_MAX_TEMPERATURE_C,
+                        help="stop when the hand's temperature exceeds this, degrees C (default %(default)s)")
     parser.add_argument("--clock", choices=CLOCKS, default="wall",
                         help="elapsed time in the observation: wall clock (real hand) or the env's clock "
                              "summed per cycle at the nominal latency (unpaced simulator, e.g. bh8 serve --env)")
@@ -235,7 +306,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.client import BarrettHand
-    from bh8_gym.status import BH8Error
 
     try:
         policy = load_policy(args.policy)
@@ -252,9 +322,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
         return 2
     try:
-        # default: one episode of the env's simulated clock
-        cycles = args.cycles or env.unwrapped.nominal_episode_steps()
-        with args.log.open("w") as log_file, BarrettHand(args.port, baudrate=args.baud) as hand:
+        log_file = args.log.open("w")
+    except OSError as exc:
+        env.close()
+        print(f"bh8 deploy: cannot write the log: {exc}", file=sys.stderr)
+        return 2
+    try:
+        cycles = env.unwrapped.nominal_episode_steps() if args.cycles is None else args.cycles
+        with log_file, BarrettHand(args.port, baudrate=args.baud) as hand:
             deployment = Deployment(hand, policy, env, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,
                                     on_exit=args.on_exit, clock=args.clock)
@@ -265,5 +340,13 @@ def run(args: argparse.Namespace) -> int:
         return 1
     finally:
         env.close()
-    print(f"bh8 deploy: {deployment.cycles} cycles, stopped: {reason}; log in {args.log}")
+    failed = deployment.hand_error is not None or deployment.safe_exit_error is not None
+    print(f"bh8 deploy: {deployment.policy_cycles} policy cycles, stopped: {reason}; log in {args.log}",
+          file=sys.stderr if failed else sys.stdout)
+    if deployment.safe_exit_error is not None:
+        commands = "zero-velocity block, ^C" + ("" if args.on_exit == "none" else f", {args.on_exit}")
+        print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {deployment.safe_exit_error}",
+              file=sys.stderr)
+    if failed:
+        return 1
     return 0 if reason == "done" else 3

@@ -1,0 +1,201 @@
+"""`bh8 deploy` as a command: option values refused before the port is opened, the help's limits
+and exit codes, a port that fails mid-run, and what the summary counts.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import serial
+
+REACH = "BH8FingerReach-v0"
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory):
+    """An untrained PPO actor on BH8FingerReach-v0, exported with the real exporter."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import export_sb3_policy
+
+    env = make_env(REACH, {})
+    try:
+        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
+    finally:
+        env.close()
+    path = tmp_path_factory.mktemp("policy") / "reach.npz"
+    return export_sb3_policy(model, path, metadata={"env_id": REACH, "env_kwargs": {}})
+
+
+@pytest.fixture
+def port_never_opened(monkeypatch):
+    """Fails the test if deploy gets as far as connecting to the hand."""
+    import bh8_gym.client
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("deploy opened the port before refusing its arguments")
+
+    monkeypatch.setattr(bh8_gym.client, "BarrettHand", refuse)
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--cycles", "-5"),
+    ("--cycles", "0"),  # not "one episode": that is --cycles left out
+    ("--max-velocity", "128"),
+    ("--max-velocity", "-1"),
+    ("--max-strain", "256"),
+    ("--max-strain", "-1"),
+    ("--max-temperature", "nan"),
+    ("--max-temperature", "inf"),
+    ("--baud", "9601"),
+])
+def test_bad_option_values_are_usage_errors_before_the_port_is_opened(policy_path, tmp_path, capsys,
+                                                                     port_never_opened, option, value):
+    from bh8_gym.cli import main
+
+    log = tmp_path / "never.jsonl"
+    with pytest.raises(SystemExit) as exited:
+        main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log),
+              option, value])
+    assert exited.value.code == 2
+    last_line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last_line.startswith("bh8 deploy: error: argument " + option) and value in last_line
+    assert not log.exists()
+
+
+def test_an_unwritable_log_is_a_usage_error_before_the_port_is_opened(policy_path, tmp_path, capsys,
+                                                                      port_never_opened):
+    from bh8_gym.cli import main
+
+    log = tmp_path / "no_such_directory" / "deploy.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log)])
+    assert code == 2
+    error = capsys.readouterr().err.strip()
+    assert error == f"bh8 deploy: cannot write the log: [Errno 2] No such file or directory: {str(log)!r}"
+
+
+def test_help_shows_the_safety_limits_defaults_and_the_exit_codes(capsys):
+    from bh8_gym.agents.deploy import DEFAULT_MAX_STRAIN, DEFAULT_MAX_TEMPERATURE_C, DEFAULT_MAX_VELOCITY_BYTE
+    from bh8_gym.cli import main
+
+    with pytest.raises(SystemExit) as exited:
+        main(["deploy", "--help"])
+    assert exited.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines where it likes
+    for default in (DEFAULT_MAX_VELOCITY_BYTE, DEFAULT_MAX_STRAIN, DEFAULT_MAX_TEMPERATURE_C):
+        assert f"(default {default})" in text
+    assert "--max-velocity 127 --max-strain 255 --on-exit none --clock cycles" in text
+    exit_status = text.split("exit status:", 1)[1]
+    for code in ("0", "1", "2", "3", "130"):
+        assert f" {code} " in f" {exit_status}", code
+
+
+def test_the_summary_counts_policy_cycles_and_the_log_keeps_every_block(policy_path, tmp_path, capsys):
+    from bh8_gym.cli import main
+
+    log = tmp_path / "deploy.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--cycles", "5",
+                 "--log", str(log), "--clock", "cycles"])
+    assert code == 0
+    assert capsys.readouterr().out.strip() == f"bh8 deploy: 5 policy cycles, stopped: done; log in {log}"
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["cycle"] for r in records if "cycle" in r] == list(range(7))  # "A", 5 policy cycles, stop block
+    assert records[-1]["event"] == "stop" and records[-1]["cycles"] == 7
+
+
+def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(policy_path, tmp_path, capsys):
+    """`bh8 serve` killed while deploy runs: the original failure with the cycle it happened at (not
+    the exit action's failed reopen), a stop record, the unsent safe-exit commands, exit 1."""
+    from bh8_gym.cli import main
+
+    server = subprocess.Popen([sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(tmp_path / "state")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = tmp_path / "deploy.jsonl"
+
+    def kill_server_once_policy_cycles_run():
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not (log.exists() and log.read_text().count('"cycle"') > 5):
+            time.sleep(0.02)
+        server.kill()
+
+    try:
+        device = server.stdout.readline().strip()
+        assert device.startswith("/dev/"), server.stderr.read()
+        killer = threading.Thread(target=kill_server_once_policy_cycles_run, daemon=True)
+        killer.start()
+        code = main(["deploy", "--port", device, "--policy", str(policy_path), "--cycles", "100000000",
+                     "--log", str(log), "--clock", "cycles"])
+        killer.join()
+    finally:
+        server.kill()
+        server.communicate()
+    err = capsys.readouterr().err
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    failed_cycle = [r["cycle"] for r in records if "cycle" in r][-1] + 1  # the block that got no feedback
+    stop = records[-1]
+    assert code == 1, err
+    assert stop["event"] == "stop" and stop["reason"].startswith(f"hand/port error at cycle {failed_cycle}: "
+                                                                 f"serial port {device!r} failed")
+    assert "cannot open" in stop["safe_exit_error"]
+    summary, safe_exit = err.strip().splitlines()[-2:]
+    assert summary == f"bh8 deploy: {failed_cycle - 1} policy cycles, stopped: {stop['reason']}; log in {log}"
+    assert safe_exit.startswith("bh8 deploy: the safe-exit commands (zero-velocity block, ^C, GT) could not be sent: "
+                                f"cannot open {device!r}")
+
+
+def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path):
+    """The same with a port object that fails like an unplugged adapter on the third policy block:
+    cycles 0 ("A"), 1 and 2 are logged, the failure is at cycle 3, and the port cannot be reopened."""
+    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.client import BarrettHand, HandConnectionError
+
+    port = serial.serial_for_url("bh8sim://?seed=0")
+    unplugged = threading.Event()
+    write = port.write
+
+    def write_unless_unplugged(data):
+        if unplugged.is_set():
+            raise serial.SerialException("device disconnected")
+        return write(data)
+
+    def open_unplugged():
+        raise serial.SerialException("no such device")
+
+    port.write, port.open = write_unless_unplugged, open_unplugged
+    exported = load_policy(policy_path)
+
+    class UnpluggingPolicy:
+        privileged, observation_dim = exported.privileged, exported.observation_dim
+        calls = 0
+
+        def predict(self, observation, deterministic=True):
+            self.calls += 1
+            if self.calls == 3:
+                unplugged.set()
+            return exported.predict(observation, deterministic=deterministic)
+
+    env = make_env(REACH, {})
+    log = tmp_path / "deploy.jsonl"
+    try:
+        with log.open("w") as log_file, BarrettHand(port) as hand:
+            deployment = Deployment(hand, UnpluggingPolicy(), env, log_file, clock="cycles")
+            deployment.setup(env.unwrapped.baud)
+            reason = deployment.run(20)
+    finally:
+        env.close()
+        port.close()
+    assert reason == f"hand/port error at cycle 3: serial port {hand.port_name!r} failed: device disconnected"
+    assert isinstance(deployment.hand_error, HandConnectionError) and deployment.policy_cycles == 2
+    assert "cannot reopen" in str(deployment.safe_exit_error)
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["cycle"] for r in records if "cycle" in r] == [0, 1, 2]
+    assert records[-1] == {**records[-1], "event": "stop", "reason": reason, "cycles": 3,
+                           "safe_exit_error": str(deployment.safe_exit_error)}
+    assert all(r.get("line") != "GT" for r in records)  # the exit action never reached the hand
