@@ -1,5 +1,6 @@
 """SB3 callbacks for `bh8 train`: held-out evaluation with best-model keeping, atomic checkpoints,
-and a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency)."""
+a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency), and stopping on a
+signal."""
 from __future__ import annotations
 
 import csv
@@ -11,8 +12,9 @@ class EvaluationCallback(BaseCallback):
     """Every `eval_freq` env steps: evaluate the deterministic policy on the held-out env, log it
     (TensorBoard and evaluations.csv), and keep the best model (success rate, then mean return).
 
-    `state` (best scores, next evaluation step) is shared with the checkpoint writer so a resumed
-    run neither repeats nor skips evaluations and keeps comparing against the same best.
+    `state` (best scores, None before the first evaluation; next evaluation step) is shared with
+    the checkpoint writer so a resumed run neither repeats nor skips evaluations and keeps comparing
+    against the same best.
     """
 
     def __init__(self, trainer, state: dict, eval_freq: int, n_episodes: int, eval_seed: int):
@@ -60,7 +62,8 @@ class EvaluationCallback(BaseCallback):
         for key in ("success_rate", "mean_return", "mean_length"):
             self.logger.record(f"eval/{key}", summary[key])
         score = (summary["success_rate"], summary["mean_return"])
-        if score > (self.state["best_success_rate"], self.state["best_mean_return"]):
+        best = (self.state["best_success_rate"], self.state["best_mean_return"])
+        if best[0] is None or score > best:
             self.state["best_success_rate"], self.state["best_mean_return"] = score
             self.state["best_timesteps"] = self.num_timesteps
             save_model_atomic(self.model, self.trainer.out_dir / "best_model.zip")
@@ -116,3 +119,14 @@ class ProgressBarCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         self._bar.close()
+
+
+class StopCallback(BaseCallback):
+    """Ends `learn` at the next env step once a signal asked the trainer to stop (`stop_signal`)."""
+
+    def __init__(self, trainer):
+        super().__init__()
+        self.trainer = trainer
+
+    def _on_step(self) -> bool:
+        return self.trainer.stop_signal is None

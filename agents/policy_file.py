@@ -16,7 +16,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable
 
 import numpy as np
 
@@ -39,21 +39,29 @@ class PolicyFileError(ValueError):
     """A policy file that cannot be read, or a model that cannot be exported."""
 
 
-def atomic_write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write `arrays` to `path` so a crash leaves either the old file or the complete new one."""
+def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """`write(handle)` into a temp file beside `path`, then rename it over `path`: a crash leaves
+    either the old file or the complete new one. The file gets the umask's mode, as an open() would
+    (mkstemp's 0600 would keep the other accounts of a lab, e.g. the one that deploys, out)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)
+            write(handle)
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would keep other accounts (deploying it) out
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write `arrays` to `path` as .npz, atomically (`atomic_write`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda handle: np.savez(handle, **arrays))
 
 
 class NumpyPolicy:

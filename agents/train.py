@@ -12,32 +12,55 @@ Output directory layout (`--out DIR`):
     tb/                          TensorBoard logs
 
 `--resume` continues an interrupted run from checkpoints/latest.*: model weights and optimiser,
-SAC's replay buffer, the timestep counter and the evaluation bookkeeping.
+SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
+and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
+--timesteps may extend the run).
+
+Ctrl-C, SIGTERM and SIGHUP stop training at the next env step (after an evaluation in progress):
+a checkpoint, then exit status 128 + the signal number (130, 143, 129). Usage errors exit 2.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import inspect
+import io
 import json
 import os
+import signal
 import sys
-import tempfile
+import threading
 import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.policy_file import RUN_METADATA_FILE
+from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
+from bh8_gym.cli import handling_signals
 
 ALGORITHMS = ("PPO", "SAC")
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci_high", "mean_return",
                       "std_return", "mean_length", "episodes")
 CHECKPOINT_DIR = "checkpoints"
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+# Keyword arguments of the SB3 constructor that the trainer sets itself, not [hyperparameters].
+TRAINER_ARGUMENTS = ("policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs",
+                     "_init_setup_model")
 
 
 class TrainingError(RuntimeError):
     """A training run that cannot start or resume (the message says why)."""
+
+
+class TrainingInterrupted(Exception):
+    """Training stopped early by one of STOP_SIGNALS, after saving a checkpoint."""
+
+    def __init__(self, signum: int, num_timesteps: int):
+        self.signum = signum
+        self.num_timesteps = num_timesteps
+        super().__init__(f"stopped by {signal.Signals(signum).name} at step {num_timesteps}")
 
 
 def default_config_path(algorithm: str, env_id: str) -> Path:
@@ -71,12 +94,14 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     return config
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write `text` (UTF-8) so a crash leaves either the old file or the complete new one."""
+    atomic_write(path, lambda handle: handle.write(text.encode()))
+
+
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write JSON so a crash leaves either the old file or the complete new one."""
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as handle:
-        json.dump(data, handle, indent=2, sort_keys=True)
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
 def save_model_atomic(model, path: Path) -> None:
@@ -123,6 +148,44 @@ def _hyperparameters(config: dict) -> dict:
     return hyperparameters
 
 
+def _algorithm_class(name: str):
+    from stable_baselines3 import PPO, SAC
+
+    return {"PPO": PPO, "SAC": SAC}[name]
+
+
+def _check_config(config: dict) -> None:
+    """The env id and the [hyperparameters] names, checked before anything is built or written."""
+    import gymnasium as gym
+
+    from bh8_gym.envs import ENV_IDS
+
+    if config["env_id"] not in gym.registry:
+        raise TrainingError(f"env_id {config['env_id']!r} is not a registered environment "
+                            f"(bh8-gym has {', '.join(ENV_IDS)})")
+    algorithm = _algorithm_class(config["algorithm"])
+    accepted = set(inspect.signature(algorithm).parameters) - set(TRAINER_ARGUMENTS)
+    for name in config["hyperparameters"]:
+        if name in TRAINER_ARGUMENTS:
+            raise TrainingError(f"hyperparameters.{name} is set by bh8 train (see --seed and [policy_kwargs])")
+        if name not in accepted:
+            raise TrainingError(f"hyperparameters.{name}: {algorithm.__name__} has no such parameter")
+
+
+class _WorkerEnvFactory:
+    """An env factory for SubprocVecEnv workers that ignore STOP_SIGNALS: a Ctrl-C or a kill sent to
+    the whole process group then stops training through the main process (checkpoint, then it
+    closes the workers) instead of killing workers mid-step."""
+
+    def __init__(self, factory):
+        self.factory = factory
+
+    def __call__(self):
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
+        return self.factory()
+
+
 class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
@@ -136,14 +199,17 @@ class Trainer:
         if self.asymmetric_critic and config["env_kwargs"].get("privileged"):
             raise TrainingError("asymmetric_critic gives the critic privileged observations itself; "
                                 "remove privileged from env_kwargs (the actor must not see them)")
+        _check_config(config)
         self.out_dir = Path(out_dir)
-        self.n_envs = int(n_envs or config["train"].get("n_envs") or os.cpu_count() or 1)
+        self.n_envs = int(n_envs if n_envs is not None else config["train"].get("n_envs", os.cpu_count() or 1))
         if self.n_envs < 1:
             raise ValueError(f"n_envs must be at least 1, got {self.n_envs}")
         self.seed = int(seed)
         self.progress = progress
         self.verbose = verbose
         self.checkpoint_dir = self.out_dir / CHECKPOINT_DIR
+        #: The signal that asked training to stop (StopCallback ends `learn` at the next step).
+        self.stop_signal: int | None = None
 
     @property
     def run_metadata(self) -> dict:
@@ -181,12 +247,10 @@ class Trainer:
         factories = [EnvFactory(self.config["env_id"], env_kwargs, seed=None) for _ in range(self.n_envs)]
         if self.n_envs == 1:
             return DummyVecEnv(factories)
-        return SubprocVecEnv(factories)
+        return SubprocVecEnv([_WorkerEnvFactory(factory) for factory in factories])
 
     def _new_model(self, env):
-        from stable_baselines3 import PPO, SAC
-
-        algorithm = {"PPO": PPO, "SAC": SAC}[self.config["algorithm"]]
+        algorithm = _algorithm_class(self.config["algorithm"])
         policy, policy_kwargs = "MlpPolicy", _policy_kwargs(self.config)
         if self.asymmetric_critic:
             from bh8_gym.agents.asymmetric import AsymmetricActorCriticPolicy
@@ -198,9 +262,7 @@ class Trainer:
                          **_hyperparameters(self.config))
 
     def _resume_model(self, env):
-        from stable_baselines3 import PPO, SAC
-
-        algorithm = {"PPO": PPO, "SAC": SAC}[self.config["algorithm"]]
+        algorithm = _algorithm_class(self.config["algorithm"])
         model = algorithm.load(self.checkpoint_dir / "latest.zip", env=env, device="cpu",
                                tensorboard_log=str(self.out_dir / "tb"), verbose=self.verbose)
         replay = self.checkpoint_dir / "latest_replay_buffer.pkl"
@@ -218,56 +280,105 @@ class Trainer:
             os.replace(tmp, self.checkpoint_dir / "latest_replay_buffer.pkl")
         write_json_atomic(self.checkpoint_dir / "latest.json", {**state, "num_timesteps": int(model.num_timesteps)})
 
+    @contextlib.contextmanager
+    def _stopping_on_signals(self):
+        """While training: STOP_SIGNALS (Ctrl-C, `kill`, a closed terminal) ask for a stop at the next
+        env step, so the checkpoint is taken with the workers between steps. Signal handlers can
+        only be set from the main thread; elsewhere nothing changes."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def request_stop(signum, _frame):
+            if self.stop_signal is None:
+                self.stop_signal = signum
+
+        with handling_signals(STOP_SIGNALS, request_stop):
+            yield
+
+    def _read_checkpoint_state(self) -> dict:
+        path = self.checkpoint_dir / "latest.json"
+        if not path.exists():
+            raise TrainingError(f"--resume: the checkpoint in {str(self.checkpoint_dir)!r} is incomplete "
+                                "(latest.zip without latest.json: interrupted while it was first written); "
+                                "remove that folder to start the run again")
+        state = json.loads(path.read_text())
+        if state.get("best_mean_return") == float("-inf"):  # older checkpoints: -1.0 and -Infinity, not null
+            state.update(best_success_rate=None, best_mean_return=None)
+        return state
+
     def run(self, total_timesteps: int, resume: bool = False) -> dict:
-        """Train until `total_timesteps` env steps in all; returns the final state dict."""
+        """Train until `total_timesteps` env steps in all; returns the final state dict (best_success_rate
+        None: no evaluation ran). Raises TrainingInterrupted after the checkpoint if a signal stopped it."""
         import torch
 
-        from bh8_gym.agents.callbacks import CheckpointCallback, EvaluationCallback, ProgressBarCallback
+        from bh8_gym.agents.callbacks import (
+            CheckpointCallback,
+            EvaluationCallback,
+            ProgressBarCallback,
+            StopCallback,
+        )
 
         # One thread per process: with SubprocVecEnv on 2 cores this is the fastest (measured).
         torch.set_num_threads(1)
         if total_timesteps < 1:
             raise ValueError(f"total_timesteps must be positive, got {total_timesteps}")
-        self._check_env_kwargs()
         has_checkpoint = (self.checkpoint_dir / "latest.zip").exists()
         if resume and not has_checkpoint:
             raise TrainingError(f"--resume: no checkpoint in {str(self.checkpoint_dir)!r}")
         if not resume and has_checkpoint:
             raise TrainingError(f"{str(self.out_dir)!r} already holds a run; pass --resume to continue it "
                                 "or choose another --out")
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        state = {"best_success_rate": -1.0, "best_mean_return": float("-inf"), "next_evaluation": 0}
+        state = {"best_success_rate": None, "best_mean_return": None, "next_evaluation": 0}
         if resume:
-            state.update(json.loads((self.checkpoint_dir / "latest.json").read_text()))
+            state.update(self._read_checkpoint_state())
+        self._check_env_kwargs()
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise TrainingError(f"cannot create the output directory {str(self.out_dir)!r}: {error.strerror}") from None
+        if resume:
+            drop_evaluations_after(self.out_dir, state["num_timesteps"])
         else:
             write_json_atomic(self.out_dir / RUN_METADATA_FILE, self.run_metadata)
 
-        env = self._vec_env()
-        try:
-            model = self._resume_model(env) if resume else self._new_model(env)
-            remaining = total_timesteps - model.num_timesteps
-            if remaining <= 0:
-                return {**state, "num_timesteps": int(model.num_timesteps)}
-            eval_config = self.config["eval"]
-            evaluation = EvaluationCallback(
-                self, state, eval_freq=int(eval_config.get("freq", 10_000)),
-                n_episodes=int(eval_config.get("episodes", 10)), eval_seed=int(eval_config.get("seed", 10_000)),
-            )
-            callbacks = [evaluation, CheckpointCallback(self, evaluation.state,
-                                                        int(self.config["train"].get("checkpoint_freq", 10_000)))]
-            if self.progress:
-                callbacks.append(ProgressBarCallback(total_timesteps))
+        with self._stopping_on_signals():
+            env = self._vec_env()
             try:
+                model = self._resume_model(env) if resume else self._new_model(env)
+                remaining = total_timesteps - model.num_timesteps
+                if remaining <= 0:
+                    return {**state, "num_timesteps": int(model.num_timesteps)}
+                eval_config = self.config["eval"]
+                evaluation = EvaluationCallback(
+                    self, state, eval_freq=int(eval_config.get("freq", 10_000)),
+                    n_episodes=int(eval_config.get("episodes", 10)), eval_seed=int(eval_config.get("seed", 10_000)),
+                )
+                callbacks = [evaluation, CheckpointCallback(self, evaluation.state,
+                                                            int(self.config["train"].get("checkpoint_freq", 10_000)))]
+                if self.progress:
+                    callbacks.append(ProgressBarCallback(total_timesteps))
+                callbacks.append(StopCallback(self))
                 model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
                             tb_log_name=self.config["algorithm"])
-            except KeyboardInterrupt:
                 self.save_checkpoint(model, evaluation.state)
-                raise
-            self.save_checkpoint(model, evaluation.state)
-            save_model_atomic(model, self.out_dir / "final_model.zip")
-            return {**evaluation.state, "num_timesteps": int(model.num_timesteps)}
-        finally:
-            env.close()
+                if self.stop_signal is not None:
+                    raise TrainingInterrupted(self.stop_signal, int(model.num_timesteps))
+                save_model_atomic(model, self.out_dir / "final_model.zip")
+                return {**evaluation.state, "num_timesteps": int(model.num_timesteps)}
+            finally:
+                env.close()
+
+
+def positive_int(text: str) -> int:
+    """argparse `type=` for counts: 0 or less is a usage error (not "use the default")."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -275,20 +386,54 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", default=None, help="environment id (default: the config's, else BH8Grasp-v0)")
     parser.add_argument("--config", type=Path, default=None,
                         help="TOML config (default agents/configs/<algo>_<grasp|reach>.toml)")
-    parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: the config's)")
-    parser.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: os.cpu_count())")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the envs and the policy: the same seed repeats a run (default 0)")
+    parser.add_argument("--timesteps", type=positive_int, default=None,
+                        help="total env steps (default: the config's train.total_timesteps)")
+    parser.add_argument("--n-envs", type=positive_int, default=None,
+                        help="parallel envs (default: the config's train.n_envs, else os.cpu_count())")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seeds the envs and the policy: the same seed repeats a run (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
 
 
+def _differing_keys(ours: dict, theirs: dict, prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two nested dicts."""
+    keys = []
+    for key in sorted(set(ours) | set(theirs)):
+        mine, other = ours.get(key), theirs.get(key)
+        if isinstance(mine, dict) and isinstance(other, dict):
+            keys += _differing_keys(mine, other, f"{prefix}{key}.")
+        elif mine != other:
+            keys.append(f"{prefix}{key}")
+    return keys
+
+
+def _check_resume_arguments(args: argparse.Namespace, run: dict) -> None:
+    """A resumed run keeps the configuration and seed it started with: an option that says otherwise
+    is an error rather than silently ignored."""
+    config, saved = run["config"], str(args.out / RUN_METADATA_FILE)
+    if args.algo and args.algo != config["algorithm"]:
+        raise TrainingError(f"--algo {args.algo} contradicts the run being resumed ({saved}: {config['algorithm']})")
+    if args.env and args.env != config["env_id"]:
+        raise TrainingError(f"--env {args.env} contradicts the run being resumed ({saved}: {config['env_id']})")
+    if args.seed is not None and args.seed != run["seed"]:
+        raise TrainingError(f"--seed {args.seed} contradicts the run being resumed ({saved}: seed {run['seed']})")
+    if args.config:
+        # compared as run.json holds it (JSON round trip)
+        differing = _differing_keys(json.loads(json.dumps(load_config(args.config))), config)
+        if differing:
+            raise TrainingError(f"--config {str(args.config)!r} contradicts the run being resumed ({saved}) in "
+                                f"{', '.join(differing)}; to train longer pass --timesteps")
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         if args.resume and (args.out / RUN_METADATA_FILE).exists():
-            # a resumed run keeps the hyperparameters it started with
-            config = json.loads((args.out / RUN_METADATA_FILE).read_text())["config"]
+            run_metadata = json.loads((args.out / RUN_METADATA_FILE).read_text())
+            _check_resume_arguments(args, run_metadata)
+            config, seed = run_metadata["config"], run_metadata["seed"]
         else:
             config_path = args.config or default_config_path(args.algo or "PPO", args.env or "BH8Grasp-v0")
             config = load_config(config_path)
@@ -297,19 +442,29 @@ def run(args: argparse.Namespace) -> int:
                                     f"{config['algorithm']!r})")
             if args.env and args.env != config["env_id"]:
                 raise TrainingError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
-        total = args.timesteps or int(config["train"].get("total_timesteps", 100_000))
-        trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=args.seed,
+            seed = 0 if args.seed is None else args.seed
+        total = args.timesteps
+        if total is None:
+            total = int(config["train"].get("total_timesteps", 100_000))
+        trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=seed,
                           progress=not args.no_progress, verbose=args.verbose)
         state = trainer.run(total, resume=args.resume)
     except (TrainingError, ValueError) as exc:
         print(f"bh8 train: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"\nbh8 train: interrupted; checkpoint saved in {args.out / CHECKPOINT_DIR} (continue with --resume)",
+    except TrainingInterrupted as stop:
+        print(f"\nbh8 train: {stop}; checkpoint saved in {args.out / CHECKPOINT_DIR} (continue with --resume)",
               file=sys.stderr)
-        return 130
-    print(f"trained to {state['num_timesteps']} steps; best held-out success rate "
-          f"{max(state['best_success_rate'], 0.0):.2f}; outputs in {args.out}")
+        return 128 + stop.signum
+    if state["best_success_rate"] is None:
+        final = args.out / "final_model.zip"
+        model = final if final.exists() else args.out / CHECKPOINT_DIR / "latest.zip"
+        print(f"trained to {state['num_timesteps']} steps; no held-out evaluation ran (one every "
+              f"{int(config['eval'].get('freq', 10_000))} steps, eval.freq), so there is no best_model.zip; "
+              f"the trained model is {model}")
+    else:
+        print(f"trained to {state['num_timesteps']} steps; best held-out success rate {state['best_success_rate']:.2f} "
+              f"(step {state['best_timesteps']}, {args.out / 'best_model.zip'}); outputs in {args.out}")
     return 0
 
 
@@ -318,3 +473,20 @@ def read_evaluations(out_dir: Path) -> list[dict[str, float]]:
     path = Path(out_dir) / "evaluations.csv"
     with path.open(newline="") as handle:
         return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
+
+
+def drop_evaluations_after(out_dir: Path, timesteps: int) -> None:
+    """Remove the `evaluations.csv` rows past `timesteps` (atomically): a run killed after its last
+    checkpoint made them, and the resumed run makes them again."""
+    path = Path(out_dir) / "evaluations.csv"
+    if not path.exists():
+        return
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    kept = [row for row in rows if float(row["timesteps"]) <= timesteps]
+    if len(kept) < len(rows):
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
+        writer.writeheader()
+        writer.writerows(kept)
+        write_text_atomic(path, text.getvalue())
