@@ -230,6 +230,10 @@ class Deployment:
                 self._exchange(self._stop_values)
             finally:
                 hand.stop_loop()
+        else:
+            # A RealTime block failed (time-out, garbled reply): the client dropped its layout, but
+            # the hand may still be in LOOP running the last velocities; resync sends it ^C.
+            hand.resync()
         if self.on_exit != "none":
             hand.command(self.on_exit, check=False)
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})

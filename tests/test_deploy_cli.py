@@ -199,3 +199,59 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
     assert records[-1] == {**records[-1], "event": "stop", "reason": reason, "cycles": 3,
                            "safe_exit_error": str(deployment.safe_exit_error)}
     assert all(r.get("line") != "GT" for r in records)  # the exit action never reached the hand
+
+
+def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy_path, tmp_path):
+    """A RealTime block that times out leaves the line's state unknown and the client out of LOOP;
+    the hand may still be in LOOP running the last velocities. finish() resyncs, which sends ^C,
+    also with --on-exit none (which sent nothing before: a real hand kept moving)."""
+    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import load_policy
+    import bh8_gym.urlhandler  # noqa: F401  (registers bh8sim:// with pyserial)
+    from bh8_gym.client import BarrettHand, HandTimeout
+
+    port = serial.serial_for_url("bh8sim://?seed=0")
+    silent, written = threading.Event(), []
+    read, write = port.read, port.write
+
+    def read_unless_silent(size=1):
+        if silent.is_set():
+            time.sleep(port.timeout or 0.0)
+            return b""
+        return read(size)
+
+    def write_and_record(data):
+        written.append(bytes(data))
+        if silent.is_set() and bytes(data) == b"\x03":
+            silent.clear()  # the hand answers again, as after a glitch on the line
+        return write(data)
+
+    port.read, port.write = read_unless_silent, write_and_record
+    exported = load_policy(policy_path)
+
+    class SilencingPolicy:
+        privileged, observation_dim = exported.privileged, exported.observation_dim
+        calls = 0
+
+        def predict(self, observation, deterministic=True):
+            self.calls += 1
+            if self.calls == 3:
+                silent.set()
+            return exported.predict(observation, deterministic=deterministic)
+
+    env = make_env(REACH, {})
+    try:
+        with (tmp_path / "deploy.jsonl").open("w") as log_file, BarrettHand(port) as hand:
+            deployment = Deployment(hand, SilencingPolicy(), env, log_file, on_exit="none", clock="cycles")
+            deployment.setup(env.unwrapped.baud)
+            before = len(written)
+            reason = deployment.run(20)
+            after_failure = written[before:]
+            assert isinstance(deployment.hand_error, HandTimeout) and reason.startswith("hand/port error at cycle 3")
+            assert deployment.safe_exit_error is None
+            assert b"\x03" in after_failure[3:]  # after the three policy blocks
+            assert not hand.in_loop and hand.get("S", "G") == {"S": [0, 0, 0]}  # supervisory again
+    finally:
+        env.close()
+        port.close()
