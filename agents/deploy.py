@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, load_policy
-from bh8_gym.cli import handling_signals
+from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import VALID_BAUD_RATES
 from bh8_gym.envs.wrappers import unit_to_bytes
 from bh8_gym.status import BH8Error
@@ -239,23 +239,6 @@ class Deployment:
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
 
 
-def _integer_within(low: int, high: int | None = None, meaning: str = ""):
-    """argparse `type=`: an integer in low..high (no upper bound if None), else a usage error quoting it."""
-    expected = f"an integer {low}..{high}" if high is not None else f"an integer >= {low}"
-    expected += f" ({meaning})" if meaning else ""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
-        if value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
-        return value
-
-    return parse
-
-
 def _finite_float(text: str) -> float:
     """argparse `type=`: a finite number (a NaN or infinite limit would never trip)."""
     try:
@@ -288,15 +271,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", required=True, type=Path, help="policy file (.npz export or SB3 .zip)")
     parser.add_argument("--baud", type=int, choices=VALID_BAUD_RATES, default=9600, metavar="RATE",
                         help="the hand's current rate, one of %(choices)s (default %(default)s, after power-up)")
-    parser.add_argument("--cycles", type=_integer_within(1), default=None,
+    parser.add_argument("--cycles", type=integer_argument(1), default=None,
                         help="policy cycles after the first 'A' block, >= 1 "
                              "(default: one env episode at the nominal latency)")
     parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"),
                         help="JSONL block log (default %(default)s)")
-    parser.add_argument("--max-velocity", type=_integer_within(0, NO_VELOCITY_CLAMP, "LCV byte magnitude"),
+    parser.add_argument("--max-velocity", type=integer_argument(0, NO_VELOCITY_CLAMP, "LCV byte magnitude"),
                         default=DEFAULT_MAX_VELOCITY_BYTE,
                         help="|LCV| limit in bytes, 0..127; 127: no clamp, -128..127 (default %(default)s)")
-    parser.add_argument("--max-strain", type=_integer_within(0, 255, "8-bit strain gauge"), default=DEFAULT_MAX_STRAIN,
+    parser.add_argument("--max-strain", type=integer_argument(0, 255, "8-bit strain gauge"), default=DEFAULT_MAX_STRAIN,
                         help="stop when a finger's strain exceeds this, 0..255 (default %(default)s)")
     parser.add_argument("--max-temperature", type=_finite_float, default=DEFAULT_MAX_TEMPERATURE_C,
                         help="stop when the hand's temperature exceeds this, degrees C (default %(default)s)")

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
-from bh8_gym.cli import handling_signals
+from bh8_gym.cli import handling_signals, integer_argument
 
 ALGORITHMS = ("PPO", "SAC")
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
@@ -370,25 +370,14 @@ class Trainer:
                 env.close()
 
 
-def positive_int(text: str) -> int:
-    """argparse `type=` for counts: 0 or less is a usage error (not "use the default")."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--algo", choices=ALGORITHMS, default=None, help="algorithm (default: the config's, else PPO)")
     parser.add_argument("--env", default=None, help="environment id (default: the config's, else BH8Grasp-v0)")
     parser.add_argument("--config", type=Path, default=None,
                         help="TOML config (default agents/configs/<algo>_<grasp|reach>.toml)")
-    parser.add_argument("--timesteps", type=positive_int, default=None,
+    parser.add_argument("--timesteps", type=integer_argument(1), default=None,
                         help="total env steps (default: the config's train.total_timesteps)")
-    parser.add_argument("--n-envs", type=positive_int, default=None,
+    parser.add_argument("--n-envs", type=integer_argument(1), default=None,
                         help="parallel envs (default: the config's train.n_envs, else os.cpu_count())")
     parser.add_argument("--seed", type=int, default=None,
                         help="seeds the envs and the policy: the same seed repeats a run (default 0)")

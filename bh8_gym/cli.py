@@ -35,6 +35,24 @@ def json_object_argument(text: str) -> dict:
     return value
 
 
+def integer_argument(low: int, high: int | None = None, meaning: str = ""):
+    """argparse `type=`: an integer in low..high (no upper bound if None), else a usage error quoting
+    it (0 for a count is an error, not "use the default")."""
+    bounds = f"at least {low}" if high is None else f"in {low}..{high}"
+    bounds += f" ({meaning})" if meaning else ""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {bounds}, got {value}")
+        return value
+
+    return parse
+
+
 @contextlib.contextmanager
 def handling_signals(signums, handler):
     """Within the block, `handler` handles each signal in `signums`; the previous handlers come

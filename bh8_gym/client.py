@@ -155,6 +155,13 @@ def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[i
     return "".join(str(m) for m in ordered), ordered
 
 
+def _check_baud_rate(name: str, rate) -> None:
+    """An int among VALID_BAUD_RATES (38400.0 would go out as "PSET BAUD 384.0", refused by the hand
+    after the host has switched)."""
+    if isinstance(rate, bool) or not isinstance(rate, int) or rate not in VALID_BAUD_RATES:
+        raise ValueError(f"{name} must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {rate!r}")
+
+
 def _check_int(name: str, value, low: int, high: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"{name} must be an integer in {low}..{high}, got {value!r}")
@@ -229,8 +236,7 @@ class BarrettHand:
         firmware: str | None = None,
         motion_timeout: float = DEFAULT_MOTION_TIMEOUT_S,
     ):
-        if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate not in VALID_BAUD_RATES:
-            raise ValueError(f"baudrate must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {baudrate!r}")
+        _check_baud_rate("baudrate", baudrate)
         if firmware not in (None, "4.3", "4.4"):
             raise ValueError(f"firmware must be '4.3', '4.4' or None (ask VERS), got {firmware!r}")
         for name, value in (("timeout", timeout), ("motion_timeout", motion_timeout)):
@@ -736,8 +742,7 @@ class BarrettHand:
 
         Not saved: PSAVE afterwards makes the rate survive a power cycle (and the next connection
         must then open the port at that rate)."""
-        if isinstance(rate, bool) or not isinstance(rate, int) or rate not in VALID_BAUD_RATES:
-            raise ValueError(f"baud rate must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {rate!r}")
+        _check_baud_rate("baud rate", rate)
         self._ensure_supervisory()
         line = f"PSET BAUD {rate // 100}"
         echo = line.encode("ascii")

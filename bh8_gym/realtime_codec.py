@@ -154,13 +154,8 @@ class LoopLayout:
             raise ValueError(
                 f"expected {len(self.control_fields)} control values {self.control_fields}, got {len(values)}"
             )
-        try:
-            for value, (lo, hi), (motor, name) in zip(values, self._control_limits, self.control_fields):
-                if not lo <= value <= hi:
-                    raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
-            return header + self._control_struct.pack(*values)
-        except (struct.error, TypeError):  # not a number ("5"), or in range but not an integer (1.5)
-            raise ValueError(f"control values must be integers, got {list(values)!r}") from None
+        return header + _checked_pack(self._control_struct, self._control_limits, self.control_fields, values,
+                                      "control")
 
     def decode_control(self, payload: bytes) -> tuple[int, ...]:
         """The control values of a block's data bytes (header excluded)."""
@@ -174,13 +169,8 @@ class LoopLayout:
             raise ValueError(
                 f"expected {len(self.feedback_fields)} feedback values {self.feedback_fields}, got {len(values)}"
             )
-        try:
-            for value, (lo, hi), (motor, name) in zip(values, self._feedback_limits, self.feedback_fields):
-                if not lo <= value <= hi:
-                    raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
-            return ACK + self._feedback_struct.pack(*values)
-        except (struct.error, TypeError):
-            raise ValueError(f"feedback values must be integers, got {list(values)!r}") from None
+        return ACK + _checked_pack(self._feedback_struct, self._feedback_limits, self.feedback_fields, values,
+                                   "feedback")
 
     def decode_feedback(self, block: bytes) -> tuple[int, ...]:
         """The feedback values of a whole block (starting with b'*'), in `feedback_fields` order."""
@@ -200,3 +190,14 @@ class LoopLayout:
             else:
                 out[motor][name] = value
         return out
+
+
+def _checked_pack(packer: struct.Struct, limits, fields, values, kind: str) -> bytes:
+    """`values` packed after checking each against its datum's range (a ValueError naming it)."""
+    try:
+        for value, (lo, hi), (motor, name) in zip(values, limits, fields):
+            if not lo <= value <= hi:
+                raise ValueError(f"{name} for motor {motor} must be in {lo}..{hi}, got {value!r}")
+        return packer.pack(*values)
+    except (struct.error, TypeError):  # not a number ("5"), or in range but not an integer (1.5)
+        raise ValueError(f"{kind} values must be integers, got {list(values)!r}") from None

@@ -12,7 +12,23 @@ import time
 import pytest
 import serial
 
+import bh8_gym.urlhandler  # noqa: F401  (registers bh8sim:// with pyserial)
+
 REACH = "BH8FingerReach-v0"
+
+
+class PolicyTriggeringAtCycle3:
+    """An exported policy that sets `event` (a fault on the line) when asked for policy cycle 3's action."""
+
+    def __init__(self, policy, event: threading.Event):
+        self.policy, self.event, self.calls = policy, event, 0
+        self.privileged, self.observation_dim = policy.privileged, policy.observation_dim
+
+    def predict(self, observation, deterministic=True):
+        self.calls += 1
+        if self.calls == 3:
+            self.event.set()
+        return self.policy.predict(observation, deterministic=deterministic)
 
 
 @pytest.fixture(scope="module")
@@ -169,23 +185,13 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
         raise serial.SerialException("no such device")
 
     port.write, port.open = write_unless_unplugged, open_unplugged
-    exported = load_policy(policy_path)
-
-    class UnpluggingPolicy:
-        privileged, observation_dim = exported.privileged, exported.observation_dim
-        calls = 0
-
-        def predict(self, observation, deterministic=True):
-            self.calls += 1
-            if self.calls == 3:
-                unplugged.set()
-            return exported.predict(observation, deterministic=deterministic)
 
     env = make_env(REACH, {})
     log = tmp_path / "deploy.jsonl"
     try:
         with log.open("w") as log_file, BarrettHand(port) as hand:
-            deployment = Deployment(hand, UnpluggingPolicy(), env, log_file, clock="cycles")
+            policy = PolicyTriggeringAtCycle3(load_policy(policy_path), unplugged)
+            deployment = Deployment(hand, policy, env, log_file, clock="cycles")
             deployment.setup(env.unwrapped.baud)
             reason = deployment.run(20)
     finally:
@@ -208,7 +214,6 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
     from bh8_gym.agents.deploy import Deployment
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.agents.policy_file import load_policy
-    import bh8_gym.urlhandler  # noqa: F401  (registers bh8sim:// with pyserial)
     from bh8_gym.client import BarrettHand, HandTimeout
 
     port = serial.serial_for_url("bh8sim://?seed=0")
@@ -228,22 +233,12 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
         return write(data)
 
     port.read, port.write = read_unless_silent, write_and_record
-    exported = load_policy(policy_path)
-
-    class SilencingPolicy:
-        privileged, observation_dim = exported.privileged, exported.observation_dim
-        calls = 0
-
-        def predict(self, observation, deterministic=True):
-            self.calls += 1
-            if self.calls == 3:
-                silent.set()
-            return exported.predict(observation, deterministic=deterministic)
 
     env = make_env(REACH, {})
     try:
         with (tmp_path / "deploy.jsonl").open("w") as log_file, BarrettHand(port) as hand:
-            deployment = Deployment(hand, SilencingPolicy(), env, log_file, on_exit="none", clock="cycles")
+            policy = PolicyTriggeringAtCycle3(load_policy(policy_path), silent)
+            deployment = Deployment(hand, policy, env, log_file, on_exit="none", clock="cycles")
             deployment.setup(env.unwrapped.baud)
             before = len(written)
             reason = deployment.run(20)

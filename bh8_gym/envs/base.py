@@ -273,7 +273,7 @@ class BH8LoopEnv(gym.Env):
     def _cycle(self, block: bytes) -> tuple[int, ...]:
         firmware = self.firmware
         if firmware is None:
-            raise gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
+            raise self._closed_error()
         firmware.write(block)
         firmware.run_until_idle()
         feedback = firmware.read()
@@ -379,7 +379,7 @@ class BH8LoopEnv(gym.Env):
         LOOP's "*" and any control block that came with the LOOP command).
         """
         if self.firmware is None:
-            raise gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
+            raise self._closed_error()
         super().reset(seed=seed)
         self.scene.remove_object()
         self.firmware.restore(self._snapshot, keep_io=keep_io)
@@ -433,6 +433,9 @@ class BH8LoopEnv(gym.Env):
 
     def _camera(self):
         return None
+
+    def _closed_error(self) -> gym.error.ClosedEnvironmentError:
+        return gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
 
     def close(self):
         if getattr(self, "firmware", None) is not None:
