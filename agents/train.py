@@ -105,10 +105,8 @@ def write_json_atomic(path: Path, data: Any) -> None:
 
 
 def save_model_atomic(model, path: Path) -> None:
-    """`model.save` to a temp name then os.replace, so `path` is never half-written."""
-    tmp = path.with_name(path.stem + ".tmp.zip")
-    model.save(tmp)
-    os.replace(tmp, path)
+    """`model.save`, atomically (`atomic_write`: SB3 saves to a file object as to a path)."""
+    atomic_write(path, model.save)
 
 
 def _policy_kwargs(config: dict) -> dict:
@@ -275,9 +273,7 @@ class Trainer:
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         save_model_atomic(model, self.checkpoint_dir / "latest.zip")
         if getattr(model, "replay_buffer", None) is not None:
-            tmp = self.checkpoint_dir / "latest_replay_buffer.tmp.pkl"
-            model.save_replay_buffer(tmp)
-            os.replace(tmp, self.checkpoint_dir / "latest_replay_buffer.pkl")
+            atomic_write(self.checkpoint_dir / "latest_replay_buffer.pkl", model.save_replay_buffer)
         write_json_atomic(self.checkpoint_dir / "latest.json", {**state, "num_timesteps": int(model.num_timesteps)})
 
     @contextlib.contextmanager
