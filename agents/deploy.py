@@ -202,7 +202,7 @@ class Deployment:
                     self.safe_exit_error = error
         stop = {"event": "stop", "reason": reason, "cycles": self.blocks, "t": time.monotonic()}
         if self.safe_exit_error is not None:
-            stop["safe_exit_error"] = str(self.safe_exit_error)
+            stop["safe_exit_error"] = error_text(self.safe_exit_error)
         self._log(stop)
         return reason
 
@@ -228,8 +228,15 @@ class Deployment:
         if hand.in_loop:
             try:
                 self._exchange(self._stop_values)
-            finally:
-                hand.stop_loop()
+            except BH8Error as error:
+                # ^C all the same (the hand may be running the last velocities); the block's failure
+                # came first and is the one reported.
+                try:
+                    hand.stop_loop()
+                except BH8Error as second:
+                    error.add_note(f"then leaving LOOP (^C) failed: {second}")
+                raise
+            hand.stop_loop()
         else:
             # A RealTime block failed (time-out, garbled reply): the client dropped its layout, but
             # the hand may still be in LOOP running the last velocities; resync sends it ^C.
@@ -237,6 +244,11 @@ class Deployment:
         if self.on_exit != "none":
             hand.command(self.on_exit, check=False)
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
+
+
+def error_text(error: BaseException) -> str:
+    """The error's message and its notes (a later failure while leaving the hand safe)."""
+    return "; ".join([str(error), *getattr(error, "__notes__", ())])
 
 
 def _finite_float(text: str) -> float:
@@ -332,7 +344,7 @@ def run(args: argparse.Namespace) -> int:
           file=sys.stderr if failed else sys.stdout)
     if deployment.safe_exit_error is not None:
         commands = "zero-velocity block, ^C" + ("" if args.on_exit == "none" else f", {args.on_exit}")
-        print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {deployment.safe_exit_error}",
+        print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {error_text(deployment.safe_exit_error)}",
               file=sys.stderr)
     if failed:
         return 1

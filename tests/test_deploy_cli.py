@@ -250,3 +250,41 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
     finally:
         env.close()
         port.close()
+
+
+def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_reported_first(policy_path, tmp_path):
+    """finish(): a hand that goes silent at the zero-velocity stop block and stays silent. The
+    block's time-out is the safe-exit error (it came first); the failed ^C after it is a note in the
+    stop record, not a replacement (before, only the ^C's failure was reported)."""
+    from bh8_gym.agents.deploy import Deployment, error_text
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.client import BarrettHand, HandTimeout
+
+    port = serial.serial_for_url("bh8sim://?seed=0")
+    read = port.read
+    deployment = None
+
+    def read_unless_silent(size=1):
+        if deployment is not None and deployment.policy_cycles >= 2:
+            time.sleep(port.timeout or 0.0)
+            return b""
+        return read(size)
+
+    port.read = read_unless_silent
+    env = make_env(REACH, {})
+    log = tmp_path / "deploy.jsonl"
+    try:
+        with log.open("w") as log_file, BarrettHand(port) as hand:
+            deployment = Deployment(hand, load_policy(policy_path), env, log_file, on_exit="none", clock="cycles")
+            deployment.setup(env.unwrapped.baud)
+            reason = deployment.run(2)
+    finally:
+        env.close()
+        port.close()
+    assert reason == "done" and deployment.hand_error is None
+    error = deployment.safe_exit_error
+    assert isinstance(error, HandTimeout) and str(error).startswith("RealTime reply"), error_text(error)
+    assert "then leaving LOOP (^C) failed" in error_text(error)
+    stop = json.loads(log.read_text().splitlines()[-1])
+    assert stop["safe_exit_error"] == error_text(error)
