@@ -41,7 +41,7 @@ class EvaluationCallback(BaseCallback):
     def evaluate(self) -> dict:
         from bh8_gym.agents.env_factory import make_env
         from bh8_gym.agents.evaluate import run_episodes, summarize
-        from bh8_gym.agents.train import EVALUATION_COLUMNS, save_model_atomic
+        from bh8_gym.agents.train import BEST_MODEL_FILE, EVALUATION_COLUMNS, save_model_atomic
 
         config = self.trainer.config
         if self._env is None:
@@ -66,7 +66,7 @@ class EvaluationCallback(BaseCallback):
         if best[0] is None or score > best:
             self.state["best_success_rate"], self.state["best_mean_return"] = score
             self.state["best_timesteps"] = self.num_timesteps
-            save_model_atomic(self.model, self.trainer.out_dir / "best_model.zip")
+            save_model_atomic(self.model, self.trainer.out_dir / BEST_MODEL_FILE)
         return summary
 
     def _on_training_end(self) -> None:

@@ -6,6 +6,7 @@ Output directory layout (`--out DIR`):
     checkpoints/latest.zip       the model, written atomically (temp file, then os.replace)
     checkpoints/latest_replay_buffer.pkl   SAC only
     checkpoints/latest.json      timestep counter, best evaluation so far, next evaluation step
+    checkpoints/best_model.zip   the best model as of that checkpoint (restored by --resume)
     best_model.zip               the model with the best held-out success rate (then return)
     final_model.zip              the model at the end of training
     evaluations.csv              one row per periodic evaluation (the training curve)
@@ -14,7 +15,8 @@ Output directory layout (`--out DIR`):
 `--resume` continues an interrupted run from checkpoints/latest.*: model weights and optimiser,
 SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
 and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
---timesteps may extend the run).
+--timesteps may extend the run). Evaluations made after the checkpoint are undone (their
+evaluations.csv rows, and a best_model.zip they wrote: the checkpoint's best model is put back).
 
 Ctrl-C, SIGTERM and SIGHUP stop training at the next env step (after an evaluation in progress):
 a checkpoint, then exit status 128 + the signal number (130, 143, 129). Usage errors exit 2.
@@ -28,6 +30,7 @@ import inspect
 import io
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -44,6 +47,7 @@ ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci_high", "mean_return",
                       "std_return", "mean_length", "episodes")
 CHECKPOINT_DIR = "checkpoints"
+BEST_MODEL_FILE = "best_model.zip"
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 # Keyword arguments of the SB3 constructor that the trainer sets itself, not [hyperparameters].
 TRAINER_ARGUMENTS = ("policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs",
@@ -102,6 +106,12 @@ def write_text_atomic(path: Path, text: str) -> None:
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write JSON so a crash leaves either the old file or the complete new one."""
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
+
+
+def copy_atomic(source: Path, destination: Path) -> None:
+    """Copy a file (`atomic_write`)."""
+    with open(source, "rb") as handle:
+        atomic_write(destination, lambda out: shutil.copyfileobj(handle, out))
 
 
 def save_model_atomic(model, path: Path) -> None:
@@ -274,6 +284,9 @@ class Trainer:
         save_model_atomic(model, self.checkpoint_dir / "latest.zip")
         if getattr(model, "replay_buffer", None) is not None:
             atomic_write(self.checkpoint_dir / "latest_replay_buffer.pkl", model.save_replay_buffer)
+        best = self.out_dir / BEST_MODEL_FILE
+        if best.exists():
+            copy_atomic(best, self.checkpoint_dir / BEST_MODEL_FILE)
         write_json_atomic(self.checkpoint_dir / "latest.json", {**state, "num_timesteps": int(model.num_timesteps)})
 
     @contextlib.contextmanager
@@ -302,6 +315,16 @@ class Trainer:
         if state.get("best_mean_return") == float("-inf"):  # older checkpoints: -1.0 and -Infinity, not null
             state.update(best_success_rate=None, best_mean_return=None)
         return state
+
+    def _restore_best_model(self, state: dict) -> None:
+        """best_model.zip as of the checkpoint: an evaluation after it (the run was killed before the
+        next checkpoint) may have replaced or created it, and the resumed run compares against the
+        checkpoint's best. Checkpoints of older versions hold no copy: their best_model.zip stays."""
+        saved, best = self.checkpoint_dir / BEST_MODEL_FILE, self.out_dir / BEST_MODEL_FILE
+        if saved.exists():
+            copy_atomic(saved, best)
+        elif state["best_success_rate"] is None:
+            best.unlink(missing_ok=True)
 
     def run(self, total_timesteps: int, resume: bool = False) -> dict:
         """Train until `total_timesteps` env steps in all; returns the final state dict (best_success_rate
@@ -335,6 +358,7 @@ class Trainer:
             raise TrainingError(f"cannot create the output directory {str(self.out_dir)!r}: {error.strerror}") from None
         if resume:
             drop_evaluations_after(self.out_dir, state["num_timesteps"])
+            self._restore_best_model(state)
         else:
             write_json_atomic(self.out_dir / RUN_METADATA_FILE, self.run_metadata)
 

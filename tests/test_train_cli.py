@@ -159,6 +159,31 @@ def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
     assert (run / "best_model.zip").is_file()
 
 
+def test_resume_puts_back_the_checkpoints_best_model(tmp_path):
+    """A run killed after an evaluation wrote best_model.zip but before the checkpoint that
+    would record it: --resume restores the checkpoint's own best model (it compares against that
+    best), instead of keeping a model from the discarded stretch of the run."""
+    config = _write_config(tmp_path / "tiny.toml", eval_freq=32)
+    run = tmp_path / "run"
+    assert _train("--config", config, "--out", run, "--timesteps", "32")[0] == 0
+    saved = (run / "checkpoints" / "best_model.zip").read_bytes()
+    assert saved == (run / "best_model.zip").read_bytes()
+    (run / "best_model.zip").write_bytes(b"written by an evaluation after the checkpoint")
+    code, _, err = _train("--resume", "--out", run, "--timesteps", "32")
+    assert code == 0, err
+    assert (run / "best_model.zip").read_bytes() == saved
+
+
+def test_resume_removes_a_best_model_written_after_a_checkpoint_without_evaluations(short_run, tmp_path):
+    _, run, _ = short_run
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    (copy / "best_model.zip").write_bytes(b"written by an evaluation after the checkpoint")
+    code, out, err = _train("--resume", "--out", copy, "--timesteps", "64")
+    assert code == 0, err
+    assert not (copy / "best_model.zip").exists() and "no held-out evaluation ran" in out
+
+
 def test_resume_reads_checkpoints_written_with_minus_infinity(short_run, tmp_path):
     """Checkpoints from before null was used say "no evaluation yet" as -1.0 and -Infinity."""
     _, run, _ = short_run
