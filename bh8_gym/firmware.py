@@ -32,7 +32,8 @@ constant below or documented here):
   max(IHIT, 1) times (at most `IHIT_MAX_IMPACTS`); the origin is set so the stop reads −IOFF; a
   trapezoidal move then brings the motor to 0. HOLD decides what happens at the end.
 - Stall (§5.5 case 1): a driven motor that has not moved more than `STALL_DISTANCE_COUNTS` for
-  TSTOP ms terminates.
+  TSTOP ms (at least `MIN_STALL_WINDOW_MS`) terminates; a profile move whose motor keeps up with
+  its profile is not stalled (at its start the profile has not moved that far yet).
 - Strain-gauge termination (§5.5 case 2) compares the raw gauge value; SGFLIP only changes what is
   sent to the host (FGET SG, LFS), as §5.3.4 says.
 - Over-temperature (§5.4.1 OTEMP): checked when a motor command (HI HOME M IO IC C O TC TO LOOP)
@@ -93,6 +94,10 @@ MAX_LINE_LENGTH = 255  # our choice: longer lines fail with ERR 128
 # is a stall. A few counts absorbs contact jitter; the slowest profile start (ACCEL 1) covers it
 # in about 10 ms, well inside the default TSTOP of 30 ms.
 STALL_DISTANCE_COUNTS = 3.0
+# Our choice: the shortest time a stall is judged over, whatever TSTOP says (0 is in its range):
+# a motor starting from rest moves less than STALL_DISTANCE_COUNTS in its first physics step, and
+# HI would take that for the open stop (and zero the encoder wherever the finger was).
+MIN_STALL_WINDOW_MS = 10.0
 # Our choice for HI: how far a finger backs off the open stop between impacts (§5.3.4 IHIT); about
 # 4 degrees of the inner link, enough to reach IVEL again before the next impact.
 IHIT_BACKOFF_COUNTS = 500.0
@@ -672,10 +677,11 @@ class Firmware:
                 channel = channels[m]
                 position = self._position(m)
                 ended = False
-                if abs(position - run.stall_position) > STALL_DISTANCE_COUNTS:
+                if abs(position - run.stall_position) > STALL_DISTANCE_COUNTS or (
+                        run.kind >= _RUN_HI_BACKOFF or run.kind == _RUN_POSITION) and self._on_profile(channel, t, position):
                     run.stall_position = position
                     run.stall_time = t
-                elif (t - run.stall_time) * 1000.0 >= v["TSTOP"] - _EPS:
+                elif (t - run.stall_time) * 1000.0 >= max(v["TSTOP"], MIN_STALL_WINDOW_MS) - _EPS:
                     ended = True
                 if not ended and run.kind <= _RUN_VELOCITY and (v["HSG"] < 255 or v["LSG"] < 255):
                     if strain is None:
@@ -752,6 +758,13 @@ class Firmware:
             return False
         del data[: index + 1]
         return True
+
+    @staticmethod
+    def _on_profile(channel, t: float, position: float) -> bool:
+        """A profile move still running with its motor keeping up: not stalled (§5.5 case 1 is an
+        obstacle stopping the motion), however short TSTOP; at the start the profile has not yet
+        moved STALL_DISTANCE_COUNTS. Once the profile has ended, a motor at rest stalls as usual."""
+        return not channel.profile_done(t) and abs(channel.profile(t)[0] - position) <= STALL_DISTANCE_COUNTS
 
     def _position(self, m: int) -> float:
         """The HCTL position of motor m in counts (float)."""

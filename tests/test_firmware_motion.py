@@ -132,6 +132,25 @@ def test_tstop_delays_stall_termination(fw):
     assert long - short == pytest.approx(0.3, abs=0.02)
 
 
+@pytest.mark.parametrize("tstop", [0, 2, 5])
+def test_a_tstop_below_a_few_ms_does_not_end_moves_before_they_start(fw, tstop):
+    """§5.3.4 TSTOP (0 to 65,535 ms) / §5.5 case 1, an obstacle stopping the motion: a motor at rest
+    as its move starts has not been stopped. With TSTOP 0 a move still ends at its goal, and HI
+    from a closed finger still finds the open stop (it used to take the first 2 ms step, before the
+    motor had moved, for the stop: "success" with P = -51 and the finger at 76 degrees)."""
+    reply_lines(fw, "GM 9000")
+    reply_lines(fw, f"GFSET TSTOP {tstop}")
+    assert reply_lines(fw, "GM 5000") == []
+    assert values(fw, "GFGET P") == pytest.approx([5000] * 3, abs=10)
+    assert reply_lines(fw, "GC") == []
+    assert min(values(fw, "GFGET P")) > 16000
+    assert reply_lines(fw, "GHI") == []
+    assert values(fw, "GFGET S") == [0, 0, 0]
+    assert values(fw, "GFGET P") == pytest.approx([0] * 3, abs=50)  # MPE
+    inner = fw.plant.joint_angles()[[1, 4, 6]]
+    assert max(abs(inner)) < 0.02  # rad: at the open stop's home, not where the finger was
+
+
 def timed_err(fw, line):
     t0 = fw.time
     reply = fw.transact(line.encode() + b"\r")
