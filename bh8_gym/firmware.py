@@ -691,7 +691,7 @@ class Firmware:
                 if not ended and run.kind in (_RUN_POSITION, _RUN_HI_BACKOFF, _RUN_HI_HOME):
                     ended = (
                         channel.profile_done(t)
-                        and abs(position - run.target) <= v["MPE"]
+                        and abs(round(position) - run.target) <= v["MPE"]
                         and abs(self._velocities[m - 1]) <= GOAL_SETTLE_VELOCITY_CPS
                     )
                 if not ended:
@@ -720,7 +720,7 @@ class Firmware:
                 if run.kind == _RUN_HI_HOME:
                     self._initialized[m] = True
                 elif run.kind == _RUN_POSITION:
-                    run.reached = abs(position - run.target) <= v["MPE"]
+                    run.reached = abs(round(position) - run.target) <= v["MPE"]  # the HCTL counts whole counts
                     if not run.reached and word in POSITION_COMMANDS:
                         self._status[m] = int(Status.COULD_NOT_REACH_POSITION)
                 self._terminate(m, position)

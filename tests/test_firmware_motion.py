@@ -151,6 +151,14 @@ def test_a_tstop_below_a_few_ms_does_not_end_moves_before_they_start(fw, tstop):
     assert max(abs(inner)) < 0.02  # rad: at the open stop's home, not where the finger was
 
 
+def test_mpe_compares_whole_counts(fw):
+    """§5.3.4 MPE with §5.5 case 3: the HCTL counts whole encoder counts, so with MPE 0 a move that
+    ends where FGET P reads its goal succeeded (it gave ERR 16 for a fraction of a count)."""
+    reply_lines(fw, "GFSET MPE 0")
+    assert reply_lines(fw, "GM 5000") == []
+    assert values(fw, "GFGET P") == [5000] * 3 and values(fw, "GFGET S") == [0] * 3
+
+
 def timed_err(fw, line):
     t0 = fw.time
     reply = fw.transact(line.encode() + b"\r")
