@@ -50,7 +50,7 @@ def check_run_metadata(sb3_policy, model_path: Path) -> None:
         expected = env.observation_space.shape
     finally:
         env.close()
-    trained = sb3_policy.model.observation_space.shape
+    trained = (sb3_policy.observation_dim,)  # the actor's inputs (an asymmetric critic reads more)
     if trained != expected:
         raise PolicyFileError(f"{str(model_path)!r} takes observations of shape {trained}, but the run.json beside it "
                               f"describes {env_id} with shape {expected}: it belongs to another run")

@@ -689,6 +689,12 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
     assert max_action_difference(sb3, exported, 256) < 1e-5
     with pytest.raises(ValueError, match="host entries"):
         sb3.predict(np.zeros(host_size + 1, dtype=np.float32))
+    # `bh8 export` of the run's model: the default grasp config trains this way (it refused it,
+    # comparing the critic's observation size with the env's)
+    from bh8_gym.cli import main
+
+    assert main(["export", str(out / "final_model.zip"), "-o", str(tmp_path / "cli.npz")]) == 0
+    assert NumpyPolicy(tmp_path / "cli.npz").observation_dim == host_size
 
 
 def test_asymmetric_critic_needs_ppo_and_no_privileged_actor():
