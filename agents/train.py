@@ -5,7 +5,8 @@ Output directory layout (`--out DIR`):
     run.json                     algorithm, env id and kwargs, seed, the resolved config
     checkpoints/latest.zip       the model, written atomically (temp file, then os.replace)
     checkpoints/latest_replay_buffer.pkl   SAC only
-    checkpoints/latest.json      timestep counter, best evaluation so far, next evaluation step
+    checkpoints/latest.json      timestep counter, the run's total, best evaluation so far, next
+                                 evaluation step
     checkpoints/best_model.zip   the best model as of that checkpoint (restored by --resume)
     best_model.zip               the model with the best held-out success rate (then return)
     final_model.zip              the model at the end of training
@@ -15,8 +16,9 @@ Output directory layout (`--out DIR`):
 `--resume` continues an interrupted run from checkpoints/latest.*: model weights and optimiser,
 SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
 and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
---timesteps may extend the run). Evaluations made after the checkpoint are undone (their
-evaluations.csv rows, and a best_model.zip they wrote: the checkpoint's best model is put back).
+--timesteps may extend the run; without it the run trains to the total it was started with).
+Evaluations made after the checkpoint are undone (their evaluations.csv rows, and a best_model.zip
+they wrote: the checkpoint's best model is put back).
 
 Ctrl-C, SIGTERM and SIGHUP stop training at the next env step (after an evaluation in progress):
 a checkpoint, then exit status 128 + the signal number (130, 143, 129). Usage errors exit 2.
@@ -326,9 +328,11 @@ class Trainer:
         elif state["best_success_rate"] is None:
             best.unlink(missing_ok=True)
 
-    def run(self, total_timesteps: int, resume: bool = False) -> dict:
-        """Train until `total_timesteps` env steps in all; returns the final state dict (best_success_rate
-        None: no evaluation ran). Raises TrainingInterrupted after the checkpoint if a signal stopped it."""
+    def run(self, total_timesteps: int | None = None, resume: bool = False) -> dict:
+        """Train until `total_timesteps` env steps in all (None: a resumed run's own total, which its
+        checkpoint records, else the config's train.total_timesteps); returns the final state dict
+        (best_success_rate None: no evaluation ran). Raises TrainingInterrupted after the checkpoint
+        if a signal stopped it."""
         import torch
 
         from bh8_gym.agents.callbacks import (
@@ -340,7 +344,7 @@ class Trainer:
 
         # One thread per process: with SubprocVecEnv on 2 cores this is the fastest (measured).
         torch.set_num_threads(1)
-        if total_timesteps < 1:
+        if total_timesteps is not None and total_timesteps < 1:
             raise ValueError(f"total_timesteps must be positive, got {total_timesteps}")
         has_checkpoint = (self.checkpoint_dir / "latest.zip").exists()
         if resume and not has_checkpoint:
@@ -351,6 +355,9 @@ class Trainer:
         state = {"best_success_rate": None, "best_mean_return": None, "next_evaluation": 0}
         if resume:
             state.update(self._read_checkpoint_state())
+        if total_timesteps is None:
+            total_timesteps = state.get("total_timesteps") or int(self.config["train"].get("total_timesteps", 100_000))
+        state["total_timesteps"] = total_timesteps
         self._check_env_kwargs()
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -396,7 +403,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None,
                         help="TOML config (default agents/configs/<algo>_<grasp|reach>.toml)")
     parser.add_argument("--timesteps", type=integer_argument(1), default=None,
-                        help="total env steps (default: the config's train.total_timesteps)")
+                        help="total env steps (default: the config's train.total_timesteps; with --resume the run's own total)")
     parser.add_argument("--n-envs", type=integer_argument(1), default=None,
                         help="parallel envs (default: the config's train.n_envs, else os.cpu_count())")
     parser.add_argument("--seed", type=int, default=None,
@@ -404,7 +411,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    parser.add_argument("--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2; default: %(default)s)")
 
 
 def _differing_keys(ours: dict, theirs: dict, prefix: str = "") -> list[str]:
@@ -452,12 +459,9 @@ def run(args: argparse.Namespace) -> int:
             if args.env and args.env != config["env_id"]:
                 raise TrainingError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
             seed = 0 if args.seed is None else args.seed
-        total = args.timesteps
-        if total is None:
-            total = int(config["train"].get("total_timesteps", 100_000))
         trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=seed,
                           progress=not args.no_progress, verbose=args.verbose)
-        state = trainer.run(total, resume=args.resume)
+        state = trainer.run(args.timesteps, resume=args.resume)
     except (TrainingError, ValueError) as exc:
         print(f"bh8 train: {exc}", file=sys.stderr)
         return 2

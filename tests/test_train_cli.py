@@ -159,6 +159,21 @@ def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
     assert (run / "best_model.zip").is_file()
 
 
+def test_resume_without_timesteps_trains_to_the_runs_own_total(tmp_path):
+    """`bh8 train --timesteps 32` interrupted, then `--resume` alone: the run's own 32 steps, not the
+    config's train.total_timesteps (64 here; the README's 300 k main job would have gone on to 500 k)."""
+    config = _write_config(tmp_path / "tiny.toml", total=64)
+    run = tmp_path / "run"
+    assert _train("--config", config, "--out", run, "--timesteps", "32")[0] == 0
+    assert json.loads((run / "checkpoints" / "latest.json").read_text())["total_timesteps"] == 32
+    code, out, err = _train("--resume", "--out", run)
+    assert code == 0, err
+    assert out.startswith("trained to 32 steps")
+    code, out, err = _train("--resume", "--out", run, "--timesteps", "64")  # --timesteps extends it
+    assert code == 0, err
+    assert out.startswith("trained to 64 steps")
+
+
 def test_resume_puts_back_the_checkpoints_best_model(tmp_path):
     """A run killed after an evaluation wrote best_model.zip but before the checkpoint that
     would record it: --resume restores the checkpoint's own best model (it compares against that
