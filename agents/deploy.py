@@ -200,7 +200,9 @@ class Deployment:
                 except BH8Error as error:
                     # Kept apart from the reason: after a dead port this is only the failed reopen.
                     self.safe_exit_error = error
-        stop = {"event": "stop", "reason": reason, "cycles": self.blocks, "t": time.monotonic()}
+        # blocks: all exchanged ("A" and stop block included); policy_cycles: those the policy chose
+        stop = {"event": "stop", "reason": reason, "blocks": self.blocks, "policy_cycles": self.policy_cycles,
+                "t": time.monotonic()}
         if self.safe_exit_error is not None:
             stop["safe_exit_error"] = error_text(self.safe_exit_error)
         self._log(stop)
@@ -297,7 +299,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="stop when the hand's temperature exceeds this, degrees C (default %(default)s)")
     parser.add_argument("--clock", choices=CLOCKS, default="wall",
                         help="elapsed time in the observation: wall clock (real hand) or the env's clock "
-                             "summed per cycle at the nominal latency (unpaced simulator, e.g. bh8 serve --env)")
+                             "summed per cycle at the nominal latency (unpaced simulator, e.g. bh8 serve --env); "
+                             "default: %(default)s")
     parser.add_argument("--on-exit", choices=EXIT_ACTIONS, default="GT",
                         help="after leaving LOOP: GT fingers off (default), T all motors off, none")
 

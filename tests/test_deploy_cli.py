@@ -121,7 +121,7 @@ def test_the_summary_counts_policy_cycles_and_the_log_keeps_every_block(policy_p
     assert capsys.readouterr().out.strip() == f"bh8 deploy: 5 policy cycles, stopped: done; log in {log}"
     records = [json.loads(line) for line in log.read_text().splitlines()]
     assert [r["cycle"] for r in records if "cycle" in r] == list(range(7))  # "A", 5 policy cycles, stop block
-    assert records[-1]["event"] == "stop" and records[-1]["cycles"] == 7
+    assert records[-1]["event"] == "stop" and records[-1]["blocks"] == 7 and records[-1]["policy_cycles"] == 5
 
 
 def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(policy_path, tmp_path, capsys):
@@ -202,7 +202,7 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
     assert "cannot reopen" in str(deployment.safe_exit_error)
     records = [json.loads(line) for line in log.read_text().splitlines()]
     assert [r["cycle"] for r in records if "cycle" in r] == [0, 1, 2]
-    assert records[-1] == {**records[-1], "event": "stop", "reason": reason, "cycles": 3,
+    assert records[-1] == {**records[-1], "event": "stop", "reason": reason, "blocks": 3, "policy_cycles": 2,
                            "safe_exit_error": str(deployment.safe_exit_error)}
     assert all(r.get("line") != "GT" for r in records)  # the exit action never reached the hand
 
