@@ -323,22 +323,25 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     source.add_argument("policy", nargs="?", type=Path, help="policy file: SB3 .zip or exported .npz")
     source.add_argument("--baseline", choices=("supervisory", "loop"), help="evaluate a scripted baseline")
     parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
-    parser.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
+    parser.add_argument("--episodes", type=int, default=50, help="episodes (default: %(default)s)")
     parser.add_argument("--objects", default="test",
-                        help="object set: test (held out, default), train, primitives, mixed, all")
+                        help="object set: test (held out), train, primitives, mixed, all (default: %(default)s)")
     parser.add_argument("--object-files", nargs="+", default=None, metavar="FILE",
-                        help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION]")
-    parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode")
-    parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on")
+                        help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION] "
+                             "(default: none, the --objects set)")
+    parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode (default: %(default)s)")
+    parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on (default: off)")
     parser.add_argument("--env-kwargs", type=json_object_argument, default={}, metavar="JSON",
-                        help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\'')
+                        help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\' '
+                             "(default: none)")
     parser.add_argument("--out", type=Path, default=None, help="report directory (default: print only)")
     parser.add_argument("--curve", type=Path, default=None,
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
-    parser.add_argument("--gif-episodes", type=int, default=2, help="episodes rendered to the GIF (0: none)")
+    parser.add_argument("--gif-episodes", type=int, default=2,
+                        help="episodes rendered to the GIF in --out (0: none; default: %(default)s)")
     parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
                         help="another evaluation's --out directory on the same episodes: print the paired "
-                             "comparison (exact McNemar test)")
+                             "comparison (exact McNemar test; default: none)")
 
 
 def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_files: list[str] | None,

@@ -12,8 +12,8 @@ from bh8_gym.firmware import Firmware
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=2000, help="RealTime cycles per baud rate")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cycles", type=int, default=2000, help="RealTime cycles per baud rate (default: %(default)s)")
     args = parser.parse_args()
 
     fw = Firmware(store_dir=None, seed=0)

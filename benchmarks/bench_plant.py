@@ -41,8 +41,9 @@ def run_plant(plant: HandPlant, steps: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per measurement")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=5.0,
+                        help="simulated seconds per measurement (default: %(default)s)")
     args = parser.parse_args()
     plant = scene()
     steps = int(args.seconds / plant.dt)

@@ -111,10 +111,11 @@ class Served:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=300, help="cycles per measurement (default 300)")
-    parser.add_argument("--baud", type=int, nargs="+", default=[96, 384], help="PSET BAUD values (default 96 384)")
-    parser.add_argument("--realtime-cycles", type=int, default=60, help="cycles through `bh8 serve --realtime` (0: skip)")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cycles", type=int, default=300, help="cycles per measurement (default: %(default)s)")
+    parser.add_argument("--baud", type=int, nargs="+", default=[96, 384], help="PSET BAUD values (default: 96 384)")
+    parser.add_argument("--realtime-cycles", type=int, default=60,
+                        help="cycles through `bh8 serve --realtime` (0: skip; default: %(default)s)")
     args = parser.parse_args(argv)
 
     print(f"{'path':<28}{'BAUD':>6}{'cycles/s':>10}{'sim ms/cycle':>14}{'sim/wall':>10}")

@@ -83,13 +83,17 @@ def squeeze(params: PlantParameters, shape: str, radius: float, offset: float):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--radii", type=float, nargs="+", default=[0.028, 0.029, 0.03, 0.031, 0.032])
-    parser.add_argument("--offsets", type=float, nargs="+", default=[-0.002, 0.0, 0.002])
+    radii, offsets = [0.028, 0.029, 0.03, 0.031, 0.032], [-0.002, 0.0, 0.002]
+    parser.add_argument("--radii", type=float, nargs="+", default=radii,
+                        help=f"object radii in m (default: {' '.join(map(str, radii))})")
+    parser.add_argument("--offsets", type=float, nargs="+", default=offsets,
+                        help=f"sideways offsets of the object in m (default: {' '.join(map(str, offsets))})")
     parser.add_argument("--shape", choices=("cylinder", "sphere", "post"), default="cylinder",
                         help="a 13 cm cylinder standing on the table, a sphere on it (same mass), or a "
-                             "square post (side 2 x radius) fixed to the world")
+                             "square post (side 2 x radius) fixed to the world (default: %(default)s)")
     parser.add_argument("--solver-iterations", type=int, default=PlantParameters.solver_iterations,
-                        help="PyBullet's constraint solver iterations per step (PlantParameters.solver_iterations)")
+                        help="PyBullet's constraint solver iterations per step (PlantParameters.solver_iterations; "
+                             "default: %(default)s)")
     args = parser.parse_args()
     params = PlantParameters(solver_iterations=args.solver_iterations)
     kept = backdriven = 0

@@ -17,11 +17,13 @@ from bh8_gym.agents.train import Trainer, default_config_path, load_config
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="BH8FingerReach-v0")
-    parser.add_argument("--timesteps", type=int, default=4096)
-    parser.add_argument("--n-envs", type=int, default=os.cpu_count())
-    parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", default="BH8FingerReach-v0", help="environment id (default: %(default)s)")
+    parser.add_argument("--timesteps", type=int, default=4096,
+                        help="env steps of the PPO run, all envs together (default: %(default)s)")
+    parser.add_argument("--n-envs", type=int, default=os.cpu_count(),
+                        help="parallel envs (default: the CPU count, here %(default)s)")
+    parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env (default: %(default)s)")
     args = parser.parse_args()
 
     config = load_config(default_config_path("PPO", args.env))

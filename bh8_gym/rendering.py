@@ -108,20 +108,27 @@ def close_hand(plant, seconds: float = 1.5, velocity: float = 24_414.0, torque_f
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--output", "-o", type=Path, default=Path("hand.png"), help="PNG file to write (default: %(default)s)")
-    parser.add_argument("--width", type=int, default=800)
-    parser.add_argument("--height", type=int, default=600)
-    parser.add_argument("--closed", action="store_true", help="close the fingers (around the objects) first")
-    parser.add_argument("--spread", type=float, default=0.0, help="spread angle, degrees (0-180)")
+    parser.add_argument("--output", "-o", type=Path, default=Path("hand.png"),
+                        help="PNG file to write (default: %(default)s)")
+    parser.add_argument("--width", type=int, default=800, help="image width, pixels (default: %(default)s)")
+    parser.add_argument("--height", type=int, default=600, help="image height, pixels (default: %(default)s)")
+    parser.add_argument("--closed", action="store_true",
+                        help="close the fingers (around the objects) first (default: open)")
+    parser.add_argument("--spread", type=float, default=0.0, help="spread angle, degrees (0-180; default: %(default)s)")
     parser.add_argument(
         "--object", action="append", default=[], metavar="SPEC",
-        help="add an object, e.g. box:0.05x0.05x0.08@0,0,0.04 or sphere:0.035 or model.urdf:1.5 (repeatable)",
+        help="add an object, e.g. box:0.05x0.05x0.08@0,0,0.04 or sphere:0.035 or model.urdf:1.5 (repeatable; default: none)",
     )
-    parser.add_argument("--wrist-height", type=float, default=None, help="wrist height above the table, m (palm down)")
-    parser.add_argument("--yaw", type=float, default=DEFAULT_CAMERA.yaw)
-    parser.add_argument("--pitch", type=float, default=DEFAULT_CAMERA.pitch)
-    parser.add_argument("--distance", type=float, default=DEFAULT_CAMERA.distance)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--wrist-height", type=float, default=None,
+                        help="wrist height above the table, m (palm down; default: 0.3, or 0.2 with --object)")
+    parser.add_argument("--yaw", type=float, default=DEFAULT_CAMERA.yaw,
+                        help="camera yaw, degrees (default: %(default)s)")
+    parser.add_argument("--pitch", type=float, default=DEFAULT_CAMERA.pitch,
+                        help="camera pitch, degrees (default: %(default)s)")
+    parser.add_argument("--distance", type=float, default=DEFAULT_CAMERA.distance,
+                        help="camera distance from its target, m (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the plant's randomised constants (default: %(default)s)")
 
 
 def run(args) -> int:

@@ -139,7 +139,9 @@ def run_interactive(hand: BarrettHand, history: Path) -> int:
             try:
                 reply = execute(hand, line.strip())
             except KeyboardInterrupt:
-                print("^C")
+                # Outside input() the tty is in cooked mode and its driver has already echoed the
+                # key as "^C": end that line rather than show a second one.
+                print("" if _tty_echoes_ctrl_c() else "^C")
                 _abort(hand)
                 continue
             except LocalRefusal as refusal:
@@ -161,6 +163,22 @@ def run_interactive(hand: BarrettHand, history: Path) -> int:
                 print(f"bh8 term: could not save history to {history}: {error}", file=sys.stderr)
 
 
+def _tty_echoes_ctrl_c() -> bool:
+    """Whether the terminal driver itself shows a Ctrl-C typed while no input() is reading (stdin's
+    ECHO and ECHOCTL set, the default of Linux and macOS terminals; readline turns echo off while
+    it reads, so at the prompt only our own "^C" is shown)."""
+    try:
+        import termios
+    except ImportError:  # Windows: the console echoes nothing for Ctrl-C
+        return False
+    try:
+        lflag = termios.tcgetattr(sys.stdin.fileno())[3]
+    except (termios.error, OSError, ValueError):
+        return False
+    echoctl = getattr(termios, "ECHOCTL", 0)
+    return bool(echoctl) and bool(lflag & termios.ECHO) and bool(lflag & echoctl)
+
+
 def _print_reply(reply: list[str]) -> None:
     for text in reply:
         meaning = explain_error(text)
@@ -180,7 +198,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="serial port or pyserial URL: /dev/ttyUSB0, COM3, socket://host:port, bh8sim://?seed=0, "
                              "or the device `bh8 serve` printed")
     parser.add_argument("--baud", type=int, default=9600, choices=VALID_BAUD_RATES,
-                        help="host baud rate; must match the hand's BAUD (default 9600, the factory setting)")
+                        help="host baud rate; must match the hand's BAUD (default: %(default)s, the factory setting)")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
                         help=f"seconds to wait for a non-motion reply (default {DEFAULT_TIMEOUT_S})")
     parser.add_argument("--motion-timeout", type=float, default=DEFAULT_MOTION_TIMEOUT_S,

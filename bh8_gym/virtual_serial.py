@@ -439,18 +439,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gui", action="store_true", help="show the PyBullet GUI (needs a display)")
     parser.add_argument(
         "--object", metavar="SPEC", action="append", default=[], dest="objects",
-        help="place an object in the hand (repeatable; the palm faces up): " + OBJECT_SPEC_HELP,
+        help="place an object in the hand (repeatable; default: none; the palm faces up): " + OBJECT_SPEC_HELP,
     )
     parser.add_argument(
         "--env", metavar="ID", default=None,
         help="serve a Gymnasium env's own hand (BH8Grasp-v0, BH8FingerReach-v0): each LOOP entry in the "
              "env's layout starts the env's next episode, the first being reset(seed=--seed)'s, so "
              "`bh8 deploy` sees byte for byte what an in-process evaluation sees; unpaced only; the "
-             "store is the env's own fresh one (no --state, --object, --firmware)",
+             "store is the env's own fresh one (no --state, --object, --firmware); default: none, the "
+             "simulated hand on its own",
     )
     parser.add_argument(
         "--env-kwargs", metavar="JSON", default=None, type=json_object_argument,
-        help='keyword arguments of the env as a JSON object, e.g. \'{"randomize": false, "object_set": "test"}\'',
+        help='keyword arguments of the env as a JSON object, e.g. \'{"randomize": false, "object_set": "test"}\' '
+             "(default: none, the env's defaults)",
     )
 
 

@@ -91,7 +91,9 @@ def _read_until(fd: int, pattern: bytes, timeout: float, seen: bytearray, start:
 
 def test_interactive_ctrl_c_aborts_motion_and_ctrl_d_exits(tmp_path):
     """Interactive mode on a tty: Ctrl-C during a GC sends ^C to the hand, which aborts the motion
-    with ERR 16384 (§5.5 case 4), and the terminal keeps running; Ctrl-D exits 0; history saved."""
+    with ERR 16384 (§5.5 case 4), and the terminal keeps running; Ctrl-D exits 0; history saved.
+    The key shows as one "^C": the tty driver echoes it while the command runs (ECHOCTL), so the
+    terminal does not print a second one."""
     import pty
 
     link = PtyLink(tmp_path / "store", ("--realtime",))  # paced: a GC takes about 1 s of wall time
@@ -116,6 +118,8 @@ def test_interactive_ctrl_c_aborts_motion_and_ctrl_d_exits(tmp_path):
             os.write(fd, b"\x03")  # Ctrl-C: the tty turns it into SIGINT for `bh8 term`
             _read_until(fd, b"ERR 16384", 30, seen)
             _read_until(fd, b"=> ", 30, seen, seen.rfind(b"ERR 16384"))  # typing before it races readline
+            after_gc = bytes(seen[seen.rfind(b"GC\r\n"):seen.rfind(b"=> ")])
+            assert after_gc.count(b"^C") == 1, after_gc
             os.write(fd, b"1FGET P\r")
             _read_until(fd, b"1FGET P\r\n", 30, seen)
             mark = seen.rfind(b"1FGET P\r\n") + len(b"1FGET P\r\n")
