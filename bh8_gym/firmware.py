@@ -311,8 +311,10 @@ class Firmware:
         return self._globals["BAUD"] * 100
 
     def shutdown(self) -> None:
-        """Persist the never-reset counters (OD, PTEMP, UPSECS); close the plant if we built it."""
-        self._save_counters()
+        """Persist the never-reset counters (OD, PTEMP, UPSECS), release the store's directory; close
+        the plant if we built it."""
+        self._save()
+        self.store.close()
         if self._owns_plant:
             self._owns_plant = False
             self.plant.close()
@@ -422,9 +424,12 @@ class Firmware:
         self._line.clear()
         self._line_overflow = False
 
-    def _save_counters(self) -> None:
+    def _save(self, motors=(), global_values: bool = False) -> None:
+        """One store write: the counters, plus the parameter sets of `motors` and/or the globals."""
         uptime = self._uptime_seconds()
-        self.store.save_counters(dict(zip(MOTORS, self._odometer)), self._update_peak_temperature(), uptime)
+        self.store.save((dict(zip(MOTORS, self._odometer)), self._update_peak_temperature(), uptime),
+                        motors={m: self._motor_values[m] for m in motors},
+                        global_values=self._globals if global_values else None)
         self._uptime_base = uptime
         self._boot_time = self.time
 
@@ -855,9 +860,7 @@ class Firmware:
 
     def _cmd_FSAVE(self, motors, args):
         self._no_arguments(args)
-        for m in motors:
-            self.store.save_motor_parameters(m, self._motor_values[m])
-        self._save_counters()
+        self._save(motors=motors)
         return []
 
     def _cmd_FDEF(self, motors, args):
@@ -904,8 +907,7 @@ class Firmware:
 
     def _cmd_PSAVE(self, motors, args):
         self._no_arguments(args)
-        self.store.save_global_parameters(self._globals)
-        self._save_counters()
+        self._save(global_values=True)
         return []
 
     def _cmd_PDEF(self, motors, args):
@@ -947,7 +949,7 @@ class Firmware:
 
     def _cmd_RESET(self, motors, args):
         self._no_arguments(args)
-        self._save_counters()
+        self._save()
         self._power_up()
         return [line.format(version=self.version) for line in BANNER_LINES]
 

@@ -7,8 +7,15 @@ uptime UPSECS and the serial number SN.
 
 One JSON file, `nvstore.json`, written atomically: a temporary file in the same directory, fsync,
 `os.replace`, then fsync of the directory, so a crash mid-write leaves the old or the new file,
-never a torn one (SPEC.md §3). A missing, unreadable or corrupt file, or a bad value in it, falls
-back to factory defaults for what is bad; loading never raises. `directory=None` keeps the store in
+never a torn one (SPEC.md §3). One command's save (FSAVE of several motors with the counters) is
+one write. A bad value in the file falls back to its factory default. A file that cannot be read
+at all (corrupt, unreadable, another format) is set aside as `nvstore.json.unreadable-<time>`, never
+overwritten, with a `StoreWarning`, and the hand starts from factory values.
+
+One simulated hand at a time owns a directory: the first load takes an exclusive lock
+(`StoreError` if another process or store holds it) until `close()`. A save that fails later (disk
+full, directory made read-only) keeps the values in memory and warns (`StoreWarning`): a real
+hand's EEPROM does not fail, so the command still succeeds. `directory=None` keeps the store in
 memory only (nothing survives the process): handy for environments that reset by snapshot.
 """
 from __future__ import annotations
@@ -17,8 +24,15 @@ import json
 import os
 import random
 import tempfile
+import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory lock
+    fcntl = None
 
 from bh8_gym.parameters import (
     MOTORS,
@@ -30,6 +44,17 @@ from bh8_gym.parameters import (
 )
 
 STORE_FILENAME = "nvstore.json"
+LOCK_FILENAME = ".nvstore.lock"
+TEMPORARY_PREFIX = ".nvstore-"
+
+
+class StoreError(OSError):
+    """The store's directory cannot be used: another simulated hand holds it, or it cannot be
+    created, locked or written when the store starts."""
+
+
+class StoreWarning(UserWarning):
+    """A save failed (the values stay in memory), or an unreadable store file was set aside."""
 FORMAT_VERSION = 1
 # Our choice: serial numbers of simulated hands are drawn (seeded) from this range, so two stores
 # made with different seeds look like two different hands. §5.4.2: field upgrades read 0.
@@ -56,6 +81,7 @@ class NVStore:
         self.profile = profile
         self.seed = seed
         self._contents: StoreContents | None = None
+        self._lock_fd: int | None = None
 
     @property
     def path(self) -> Path | None:
@@ -67,25 +93,31 @@ class NVStore:
             self._contents = self._read()
         return _copy(self._contents)
 
-    def save_motor_parameters(self, motor: int, values: dict[str, int]) -> None:
-        """FSAVE for one motor."""
+    def save(self, counters: tuple[dict[int, float], int, float], motors: dict[int, dict[str, int]] | None = None,
+             global_values: dict[str, int] | None = None) -> None:
+        """One write: the never-reset `counters` (odometer counts per motor, PTEMP, UPSECS), plus the
+        saved parameter sets of `motors` (FSAVE) and/or the global set (PSAVE). A failed write
+        keeps the values in memory and warns (StoreWarning)."""
         contents = self._current()
-        contents.motors[motor] = dict(values)
-        self._write(contents)
-
-    def save_global_parameters(self, values: dict[str, int]) -> None:
-        """PSAVE."""
-        contents = self._current()
-        contents.globals = dict(values)
-        self._write(contents)
-
-    def save_counters(self, odometer_counts: dict[int, float], peak_temperature: int, uptime_seconds: float) -> None:
-        """Persist the never-reset counters (OD, PTEMP, UPSECS)."""
-        contents = self._current()
+        odometer_counts, peak_temperature, uptime_seconds = counters
         contents.odometer_counts = {m: float(odometer_counts[m]) for m in MOTORS}
         contents.peak_temperature = int(peak_temperature)
         contents.uptime_seconds = float(uptime_seconds)
-        self._write(contents)
+        for motor, values in (motors or {}).items():
+            contents.motors[motor] = dict(values)
+        if global_values is not None:
+            contents.globals = dict(global_values)
+        try:
+            self._write(contents)
+        except OSError as error:
+            warnings.warn(StoreWarning(f"cannot write the store {str(self.path)!r} ({error}); the saved values are "
+                                       "kept only until this simulated hand stops"), stacklevel=2)
+
+    def close(self) -> None:
+        """Release the directory for another simulated hand (the contents stay readable)."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     # -- internals ---------------------------------------------------------------------------
 
@@ -93,6 +125,36 @@ class NVStore:
         if self._contents is None:
             self._contents = self._read()
         return self._contents
+
+    def _lock(self) -> None:
+        """Own the directory (before reading it); remove temporary files a killed writer left."""
+        directory = self.directory
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            fd = os.open(directory / LOCK_FILENAME, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as error:
+            raise StoreError(f"cannot use the store directory {str(directory)!r}: {error}") from None
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                raise StoreError(f"the store directory {str(directory)!r} is in use by another simulated hand "
+                                 "(bh8 serve, bh8sim:// or a Firmware): give each its own --state / state=") from None
+        self._lock_fd = fd
+        for leftover in directory.glob(TEMPORARY_PREFIX + "*.tmp"):
+            leftover.unlink(missing_ok=True)
+
+    def _set_aside(self, path: Path, reason: str) -> None:
+        """Keep an unreadable store file under another name (never overwrite a hand's counters)."""
+        aside = path.with_name(f"{STORE_FILENAME}.unreadable-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}")
+        try:
+            os.replace(path, aside)
+        except OSError as error:
+            raise StoreError(f"the store {str(path)!r} cannot be read ({reason}) nor set aside ({error}); "
+                             "fix or remove it") from None
+        warnings.warn(StoreWarning(f"the store {str(path)!r} cannot be read ({reason}); it is kept as "
+                                   f"{str(aside)!r} and this hand starts from factory values"), stacklevel=4)
 
     def _factory(self) -> StoreContents:
         rng = random.Random(self.seed)
@@ -105,15 +167,26 @@ class NVStore:
     def _read(self) -> StoreContents:
         contents = self._factory()
         path = self.path
-        if path is None or not path.exists():
-            if path is not None:
+        if path is None:
+            return contents
+        if self._lock_fd is None:
+            self._lock()
+        raw = None
+        if path.exists():
+            try:
+                raw = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as error:
+                self._set_aside(path, str(error))
+            else:
+                if not isinstance(raw, dict) or raw.get("format") != FORMAT_VERSION:
+                    found = raw.get("format") if isinstance(raw, dict) else type(raw).__name__
+                    self._set_aside(path, f"format {found!r}, this version reads format {FORMAT_VERSION}")
+                    raw = None
+        if raw is None:
+            try:
                 self._write(contents)  # the serial number is fixed from the first power-up on
-            return contents
-        try:
-            raw = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return contents
-        if not isinstance(raw, dict):
+            except OSError as error:
+                raise StoreError(f"cannot write the store {str(path)!r}: {error}") from None
             return contents
         motor_table = motor_parameters(self.profile)
         global_table = global_parameters(self.profile)
@@ -157,8 +230,7 @@ class NVStore:
                 "serial_number": contents.serial_number,
             },
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=".nvstore-", suffix=".tmp", dir=path.parent)
+        handle, temporary = tempfile.mkstemp(prefix=TEMPORARY_PREFIX, suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(handle, "w", encoding="utf-8") as stream:
                 json.dump(payload, stream, indent=1, sort_keys=True)

@@ -40,6 +40,7 @@ import select
 import signal
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -483,17 +484,42 @@ def run(args: argparse.Namespace) -> int:
     if args.env_kwargs is not None:
         print("bh8 serve: --env-kwargs needs --env", file=sys.stderr)
         return 2
+    from bh8_gym.nvstore import StoreError
+
     state_dir = args.state if args.state is not None else default_state_dir()
-    try:
-        with _native_stdout_to_stderr():
-            firmware = build_firmware(state_dir, args.firmware or "4.3", args.seed, tuple(args.objects), args.gui)
-    except ValueError as error:
-        print(f"bh8 serve: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:
-        print(f"bh8 serve: cannot use the store {state_dir}: {error}", file=sys.stderr)
-        return 1
-    return serve(firmware, realtime=args.realtime, link=args.link, store=state_dir)
+    with _store_warnings_on_stderr():
+        try:
+            with _native_stdout_to_stderr():
+                firmware = build_firmware(state_dir, args.firmware or "4.3", args.seed, tuple(args.objects), args.gui)
+        except ValueError as error:
+            print(f"bh8 serve: {error}", file=sys.stderr)
+            return 2
+        except StoreError as error:
+            print(f"bh8 serve: {error}", file=sys.stderr)
+            return 1
+        except OSError as error:
+            print(f"bh8 serve: cannot use the store {state_dir}: {error}", file=sys.stderr)
+            return 1
+        return serve(firmware, realtime=args.realtime, link=args.link, store=state_dir)
+
+
+@contextlib.contextmanager
+def _store_warnings_on_stderr():
+    """Each StoreWarning (a save that failed, a damaged store set aside) as one line on stderr."""
+    from bh8_gym.nvstore import StoreWarning
+
+    show_others = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, StoreWarning):
+            print(f"bh8 serve: {message}", file=sys.stderr, flush=True)
+        else:
+            show_others(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", StoreWarning)
+        warnings.showwarning = show
+        yield
 
 
 def _run_env(args: argparse.Namespace) -> int:

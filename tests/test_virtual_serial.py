@@ -155,6 +155,55 @@ def test_sigterm_and_sigint_save_and_exit_zero(tmp_path):
         assert _stop(link, signal.SIGINT) == 0
 
 
+def test_a_save_that_cannot_be_written_is_a_warning_and_the_server_keeps_serving(tmp_path):
+    """The host's disk failing (here nvstore.json replaced by a directory) is not the hand's
+    error: PSAVE still answers as on a real hand (whose EEPROM does not fail), the server says on
+    stderr that the values live only in memory, and it keeps serving (it used to die with a
+    traceback, the client timing out)."""
+    store = tmp_path / "store"
+    link = _serve(store)
+    try:
+        (store / "nvstore.json").unlink()
+        (store / "nvstore.json").mkdir()
+        assert link.lines("PSET OTEMP 111") == [] and link.lines("PSAVE") == []
+        assert link.lines("PLOAD") == [] and link.lines("PGET OTEMP") == ["111"]
+        assert link.lines("1FSAVE") == []
+    finally:
+        code = _stop(link)
+    err = link.process.stderr.read()
+    assert code == 0 and "Traceback" not in err, err
+    assert "bh8 serve: cannot write the store" in err and "kept only until this simulated hand stops" in err
+
+
+def test_a_second_server_on_the_same_state_is_refused(tmp_path):
+    """Two hands on one store would undo each other's saves (each writes its whole copy)."""
+    store = tmp_path / "store"
+    link = _serve(store)
+    try:
+        second = subprocess.run([sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(store)],
+                                capture_output=True, text=True, timeout=60)
+        assert second.returncode == 1 and second.stdout == ""
+        assert "in use by another simulated hand" in second.stderr and "Traceback" not in second.stderr
+        assert link.lines("VERS") == ["4.34"]
+    finally:
+        assert _stop(link) == 0
+
+
+def test_a_damaged_store_is_set_aside_with_a_message(tmp_path):
+    store = tmp_path / "store"
+    store.mkdir()
+    (store / "nvstore.json").write_text('{"format": 1, "counters": {"serial_nu')
+    link = _serve(store)
+    try:
+        assert link.lines("PGET OTEMP") == ["0"]
+    finally:
+        assert _stop(link) == 0
+    err = link.process.stderr.read()
+    assert "cannot be read" in err and "starts from factory values" in err
+    aside = [p for p in store.iterdir() if p.name.startswith("nvstore.json.unreadable-")]
+    assert len(aside) == 1 and aside[0].read_text().endswith("serial_nu")
+
+
 _RUNAWAY_SERVER = """
 import sys
 from bh8_gym import virtual_serial
