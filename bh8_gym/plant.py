@@ -171,15 +171,7 @@ class PlantParameters:
     def from_overrides(cls, overrides) -> "PlantParameters":
         """The defaults with some fields replaced: `overrides` is a PlantParameters (returned as it
         is) or a mapping of field names to values, as a TOML config or JSON env kwargs give them."""
-        if isinstance(overrides, cls):
-            return overrides
-        if not hasattr(overrides, "keys"):
-            raise PlantError(f"plant parameters must be PlantParameters or a dict of its fields, got {overrides!r}")
-        names = {item.name for item in fields(cls)}
-        unknown = sorted(str(name) for name in overrides if name not in names)
-        if unknown:
-            raise PlantError(f"PlantParameters has no field {', '.join(map(repr, unknown))}")
-        params = cls(**{name: tuple(value) if isinstance(value, list) else value for name, value in overrides.items()})
+        params = dataclass_from(cls, overrides, "plant parameters")
         params.validate()
         return params
 
@@ -192,6 +184,28 @@ class PlantParameters:
             raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
         if self.solver_iterations < 1:
             raise PlantError(f"solver_iterations must be at least 1, got {self.solver_iterations!r}")
+
+
+def dataclass_from(cls, value, keyword: str):
+    """`value` as a `cls` settings dataclass (fields of float, int, bool, fixed-length tuples): an
+    instance as it is, None for the defaults, or a mapping of some field names to values (what a
+    TOML config or JSON env kwargs can carry). An unknown name or a value of the wrong kind is a
+    PlantError naming it, at once rather than at the first step."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if not hasattr(value, "keys"):
+        raise PlantError(f"{keyword} must be {cls.__name__} or a dict of its fields, got {value!r}")
+    kinds = {item.name: item.type for item in fields(cls)}
+    unknown = sorted(str(name) for name in value if name not in kinds)
+    if unknown:
+        raise PlantError(f"{cls.__name__} ({keyword}) has no field {', '.join(map(repr, unknown))}")
+    values = {name: tuple(item) if isinstance(item, list) else item for name, item in value.items()}
+    for name, item in values.items():
+        if not _matches(str(kinds[name]), item):
+            raise PlantError(f"{keyword}: {name} must be {kinds[name]}, got {item!r}")
+    return cls(**values)
 
 
 def _matches(annotation: str, value) -> bool:

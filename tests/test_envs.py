@@ -5,6 +5,7 @@ layout, §6 time per cycle), so several tests check the raw blocks in `info`.
 """
 from __future__ import annotations
 
+import pickle
 import shutil
 import subprocess
 import sys
@@ -439,6 +440,49 @@ def test_plant_parameters_as_a_dict_of_fields():
             gym.make("BH8Grasp-v0", plant_parameters=bad)
 
 
+@pytest.mark.parametrize("env_id, keyword, fields, attribute", [
+    ("BH8Grasp-v0", "randomization", {"motor_peak_torque": [0.9, 1.1]}, "randomization"),
+    ("BH8Grasp-v0", "placement", {"yaw_error": 0.1}, "placement"),
+    ("BH8Grasp-v0", "reward_weights", {"success": 5.0}, "weights"),
+    ("BH8Grasp-v0", "arm", {"lift_seconds": 0.5}, "arm"),
+    ("BH8FingerReach-v0", "targets", {"finger": [0, 5000]}, "ranges"),
+    ("BH8FingerReach-v0", "tolerance", {"finger": 100}, "tolerance"),
+])
+def test_settings_dataclasses_as_dicts_of_fields(env_id, keyword, fields, attribute):
+    """The env's settings dataclasses, like plant_parameters, take a dict of their fields (all a
+    TOML config or --env-kwargs JSON can carry); they used to be accepted and then fail with an
+    AttributeError at the first reset or step. Bad fields are refused at make, naming them."""
+    env = gym.make(env_id, **{keyword: fields}).unwrapped
+    try:
+        settings = getattr(env, attribute)
+        for name, value in fields.items():
+            assert getattr(settings, name) == (tuple(value) if isinstance(value, list) else value)
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="no field 'nope'"):
+        gym.make(env_id, **{keyword: {"nope": 1}})
+    name = next(iter(fields))
+    with pytest.raises(ValueError, match=f"{keyword}: {name} must be"):
+        gym.make(env_id, **{keyword: {name: "text"}})
+
+
+def test_more_configuration_errors_at_make():
+    """A bad render_size is refused at make (it failed only at render()); object_files=[] is an
+    error (it fell back to the primitives); copying an env says what to do instead."""
+    with pytest.raises(ValueError, match="render_size"):
+        gym.make("BH8Grasp-v0", render_size=(0, 10))
+    with pytest.raises(ValueError, match="object_files is empty"):
+        gym.make("BH8Grasp-v0", object_files=[])
+    env = gym.make("BH8FingerReach-v0")
+    try:
+        with pytest.raises(TypeError, match="factory"):
+            pickle.dumps(env.unwrapped)
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("name", ["randomize", "privileged", "lcpg", "lfv", "lft", "shake"])
 @pytest.mark.parametrize("value", ["false", 2, None])
 def test_on_off_keywords_refuse_non_booleans(name, value):
@@ -516,5 +560,14 @@ def test_rgb_array_rendering_and_episode_recording(tmp_path):
         result = record_episode(env, lambda obs: np.array([40, 150] * 3 + [0, 100], dtype=np.int16),
                                 tmp_path / "episode.gif", seed=0, every=30)
         assert result["steps"] > 250 and (tmp_path / "episode.gif").stat().st_size > 1000
+        # by default frames of at least 20 ms: the GIF plays in real time (one frame per 6.7 ms
+        # step was stored as 0 cs, which players show at 100 ms: 15x slow)
+        from PIL import Image, ImageSequence
+
+        record_episode(env, lambda obs: np.zeros(8, dtype=np.int16), tmp_path / "real_time.gif", seed=0)
+        with Image.open(tmp_path / "real_time.gif") as gif:
+            durations = [frame.info["duration"] for frame in ImageSequence.Iterator(gif)]
+        assert min(durations) >= 20 and sum(durations) / 1000 == pytest.approx(env.unwrapped.arm.total_seconds, rel=0.05)
+        assert env.metadata["render_fps"] == round(1 / env.unwrapped.cycle_seconds)
     finally:
         env.close()

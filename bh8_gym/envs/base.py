@@ -117,8 +117,13 @@ class BH8LoopEnv(gym.Env):
         self.privileged = bool(privileged)
         self.render_mode = render_mode
         self.render_size = tuple(render_size)
+        if len(self.render_size) != 2 or not all(
+                isinstance(side, (int, np.integer)) and not isinstance(side, bool) and side > 0 for side in self.render_size):
+            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
         self.randomize = bool(randomize)
-        self.randomization = randomization or RandomizationRanges()
+        from bh8_gym.plant import dataclass_from  # the plant (and PyBullet) load with the first env
+
+        self.randomization = dataclass_from(RandomizationRanges, randomization, "randomization")
         self.episode_seconds = float(episode_seconds)
         self.coefficients = {"LCVC": int(lcvc), "LFVC": int(lfvc), "LFDPC": int(lfdpc)}
 
@@ -146,6 +151,8 @@ class BH8LoopEnv(gym.Env):
         from bh8_gym.firmware import REALTIME_PROCESSING_S
 
         self.cycle_seconds = (control_bytes + self.layout.feedback_size) * BITS_PER_BYTE / self.baud + REALTIME_PROCESSING_S
+        # One frame per step plays in real time (gymnasium's RecordVideo reads this).
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.cycle_seconds)}
         #: The firmware's processing seconds per cycle without randomisation: what a host assumes.
         self.nominal_processing_time = REALTIME_PROCESSING_S
         # The host clock's terms, as the firmware computes a cycle's time (SPEC.md §6).
@@ -302,6 +309,10 @@ class BH8LoopEnv(gym.Env):
                     f"({[f'{n}{m}' for m, n in self.layout.control_fields]})"
                 )
         return values
+
+    def __getstate__(self):
+        raise TypeError(f"{type(self).__name__} holds a PyBullet simulation and cannot be pickled or copied; "
+                        "give vector envs a factory instead (e.g. lambda: gym.make(...))")
 
     def elapsed(self) -> float:
         """Seconds of the host's clock since its first block of this episode (the reset's "A" block).

@@ -25,6 +25,7 @@ import numpy as np
 from bh8_gym.envs.base import FULL_RANGE_COUNTS, BH8LoopEnv
 from bh8_gym.envs.randomization import RandomizationRanges
 from bh8_gym.envs.scenes import ReachEpisode, ReachRanges, ReachScene
+from bh8_gym.plant import dataclass_from
 from bh8_gym.realtime_codec import MotorFlags
 
 
@@ -64,8 +65,8 @@ class BH8FingerReachEnv(BH8LoopEnv):
     ):
         if not (isinstance(loop_gain, (int, np.integer)) and 0 <= loop_gain <= 255):
             raise ValueError(f"loop_gain (FPG) must be an integer 0..255, got {loop_gain!r}")
-        self.ranges = targets or ReachRanges()
-        self.tolerance = tolerance or ReachTolerance()
+        self.ranges = dataclass_from(ReachRanges, targets, "targets")
+        self.tolerance = dataclass_from(ReachTolerance, tolerance, "tolerance")
         self.success_bonus = float(success_bonus)
         self.loop_gain = int(loop_gain)
         motors = tuple(sorted(set(int(m) for m in motors)))

@@ -27,6 +27,7 @@ from bh8_gym.envs.base import BH8LoopEnv, check_switch
 from bh8_gym.envs.objects import ObjectSet, ObjectSpec
 from bh8_gym.envs.randomization import RandomizationRanges
 from bh8_gym.envs.scenes import ArmSchedule, GraspScene, PlacementRanges
+from bh8_gym.plant import dataclass_from
 from bh8_gym.realtime_codec import MotorFlags
 
 
@@ -80,21 +81,21 @@ class BH8GraspEnv(BH8LoopEnv):
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
     ):
-        if object_files:
+        if object_files is not None:  # replaces object_set; an empty list is an error, not primitives
             self.object_set = ObjectSet.from_files(object_files)
         elif isinstance(object_set, ObjectSet):
             self.object_set = object_set
         else:
             self.object_set = ObjectSet.named(object_set)
         check_switch("shake", shake)
-        arm = arm or ArmSchedule()
+        arm = dataclass_from(ArmSchedule, arm, "arm")
         if shake and arm.shake_amplitude == 0.0:
             arm = ArmSchedule(arm.grasp_seconds, arm.lift_seconds, arm.hold_seconds, arm.lift_height,
                               SHAKE_AMPLITUDE, arm.shake_frequency)
         self.arm = arm
-        self.placement = placement or PlacementRanges()
+        self.placement = dataclass_from(PlacementRanges, placement, "placement")
         self.success_height = float(success_height)
-        self.weights = reward_weights or GraspRewardWeights()
+        self.weights = dataclass_from(GraspRewardWeights, reward_weights, "reward_weights")
         self._n_phases = len(ArmSchedule.PHASES)
         super().__init__(
             motors=motors,

@@ -13,6 +13,9 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
+# The shortest frame record_episode writes by default: 2 centiseconds, the shortest GIF delay players honour.
+MIN_FRAME_SECONDS = 0.02
+
 
 def unit_to_bytes(unit: np.ndarray, low: np.ndarray, high: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Map floats in [-1, 1] (clipped) linearly onto the integer range low..high, rounding to nearest.
@@ -83,17 +86,22 @@ def record_episode(
     path: str | Path,
     seed: int | None = None,
     fps: float | None = None,
-    every: int = 1,
+    every: int | None = None,
 ) -> dict:
     """Run one episode with `policy(obs) -> action`, render every `every`-th step, write a GIF/MP4.
 
-    `env` must have render_mode "rgb_array". fps defaults to real time (the env's control rate
-    divided by `every`). Returns {"steps", "return", "is_success", "path"}.
+    `env` must have render_mode "rgb_array". `every` defaults to the fewest steps that last
+    MIN_FRAME_SECONDS (a GIF stores whole centiseconds and players show shorter frames at 100 ms,
+    so one frame per 6.7 ms step played 15x slow); fps defaults to real time (the env's control
+    rate divided by `every`). Returns {"steps", "return", "is_success", "path"}.
     """
     from bh8_gym.rendering import write_animation
 
     if env.render_mode != "rgb_array":
         raise ValueError(f"record_episode needs render_mode='rgb_array', got {env.render_mode!r}")
+    cycle_seconds = env.unwrapped.cycle_seconds
+    if every is None:
+        every = max(1, math.ceil(MIN_FRAME_SECONDS / cycle_seconds - 1e-9))
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every!r}")
     obs, info = env.reset(seed=seed)
@@ -107,6 +115,6 @@ def record_episode(
         if steps % every == 0 or done:
             frames.append(env.render())
     if fps is None:
-        fps = 1.0 / (env.unwrapped.cycle_seconds * every)
+        fps = 1.0 / (cycle_seconds * every)
     write_animation(frames, str(path), fps=fps)
     return {"steps": steps, "return": total, "is_success": bool(info.get("is_success", False)), "path": str(path)}
