@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
@@ -40,7 +41,7 @@ class PolicyFileError(ValueError):
 
 
 def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
-    """`write(handle)` into a temp file beside `path`, then rename it over `path`: a crash leaves
+    """`write(handle)` into a temp file beside `path`, fsync, then rename it over `path`: a crash leaves
     either the old file or the complete new one. The file gets the umask's mode, as an open() would
     (mkstemp's 0600 would keep the other accounts of a lab, e.g. the one that deploys, out)."""
     path = Path(path)
@@ -48,6 +49,8 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())  # on disk before the rename: a power loss leaves old or new, not empty
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
@@ -70,9 +73,12 @@ class NumpyPolicy:
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         try:
+            if self.path.is_file() and not zipfile.is_zipfile(self.path):  # np.load would try to unpickle it
+                raise PolicyFileError(f"{str(self.path)!r} is not an .npz file (truncated, or something else); "
+                                      "export the policy again")
             with np.load(self.path, allow_pickle=False) as data:
                 arrays = {name: data[name] for name in data.files}
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
             raise PolicyFileError(f"cannot read policy file {str(self.path)!r}: {exc}") from exc
         if "format" not in arrays or str(arrays["format"]) != FORMAT:
             raise PolicyFileError(f"{str(self.path)!r} is not a {FORMAT} file")
@@ -265,8 +271,9 @@ class SB3Policy:
             try:
                 self.model = algorithm.load(path, device=device)
                 break
-            # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model)
-            except (AssertionError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+            # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model);
+            # AttributeError: a zip without its policy.pth
+            except (AssertionError, AttributeError, KeyError, ValueError, TypeError, RuntimeError) as exc:
                 errors.append(f"{algorithm.__name__}: {exc}")
         else:
             raise PolicyFileError(f"cannot load SB3 model {str(path)!r}: {'; '.join(errors)}")

@@ -273,6 +273,27 @@ def test_damaged_npz_is_a_policy_file_error(tmp_path):
         NumpyPolicy(tmp_path / "damaged.npz")
 
 
+@pytest.mark.parametrize("damage", ["truncated", "empty", "garbage", "zeros", "flipped"])
+def test_a_truncated_or_garbled_npz_is_a_policy_file_error(tmp_path, capsys, damage):
+    """A half-copied or garbled .npz (zip errors, EOFError, or numpy's "allow_pickle" hint for a
+    file that is not a zip at all) is a PolicyFileError, and `bh8 eval` a one-line error, exit 2
+    (tracebacks before)."""
+    from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError
+    from bh8_gym.cli import main
+
+    data = _export_untrained_reach_policy(tmp_path).read_bytes()
+    middle = len(data) // 2
+    damaged = {"truncated": data[:middle], "empty": b"", "garbage": bytes(range(256)) * 8, "zeros": bytes(2048),
+               "flipped": data[:middle] + bytes([data[middle] ^ 0xFF]) + data[middle + 1:]}[damage]
+    path = tmp_path / "damaged.npz"
+    path.write_bytes(damaged)
+    with pytest.raises(PolicyFileError, match="damaged.npz"):
+        NumpyPolicy(path)
+    assert main(["eval", str(path), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "damaged.npz" in err
+
+
 def test_cli_eval_refuses_bad_env_ids_object_files_and_out_paths_before_running(tmp_path, capsys):
     """Clear one-line errors (exit 2) instead of tracebacks; --out is checked before the episodes."""
     from bh8_gym.cli import main
