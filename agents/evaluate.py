@@ -29,7 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bh8_gym.cli import json_object_argument
+from bh8_gym.cli import integer_argument, json_object_argument
 
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
@@ -329,7 +329,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--object-files", nargs="+", default=None, metavar="FILE",
                         help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION] "
                              "(default: none, the --objects set)")
-    parser.add_argument("--seed", type=int, default=100_000, help="seed of the first episode (default: %(default)s)")
+    parser.add_argument("--seed", type=integer_argument(0), default=100_000, help="seed of the first episode (default: %(default)s)")
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on (default: off)")
     parser.add_argument("--env-kwargs", type=json_object_argument, default={}, metavar="JSON",
                         help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\' '

@@ -406,7 +406,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="total env steps (default: the config's train.total_timesteps; with --resume the run's own total)")
     parser.add_argument("--n-envs", type=integer_argument(1), default=None,
                         help="parallel envs (default: the config's train.n_envs, else os.cpu_count())")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--seed", type=integer_argument(0, 2**32 - 1), default=None,
                         help="seeds the envs and the policy: the same seed repeats a run (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")

@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pybullet as p
 
+from bh8_gym.cli import integer_argument
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -127,7 +129,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="camera pitch, degrees (default: %(default)s)")
     parser.add_argument("--distance", type=float, default=DEFAULT_CAMERA.distance,
                         help="camera distance from its target, m (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants (default: %(default)s)")
 
 

@@ -44,7 +44,7 @@ import warnings
 from pathlib import Path
 from typing import Sequence
 
-from bh8_gym.cli import handling_signals, json_object_argument
+from bh8_gym.cli import handling_signals, integer_argument, json_object_argument
 
 FIRMWARE_PROFILES = ("4.3", "4.4")
 
@@ -435,7 +435,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--link", metavar="PATH", default=None,
         help="also make a symlink PATH -> the device (e.g. /dev/ttyUSB0), removed on exit",
     )
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")
     parser.add_argument("--gui", action="store_true", help="show the PyBullet GUI (needs a display)")
     parser.add_argument(

@@ -273,3 +273,14 @@ def test_termination_signal_saves_a_checkpoint_like_ctrl_c(tmp_path, signum, n_e
     state = json.loads((run / "checkpoints" / "latest.json").read_text())
     assert state["num_timesteps"] >= n_envs and (run / "checkpoints" / "latest.zip").is_file()
     assert not (run / "final_model.zip").exists()
+
+
+@pytest.mark.parametrize("command", [["serve"], ["render", "-o", "x.png"], ["eval", "--baseline", "loop"],
+                                     ["train", "--out", "run"]])
+def test_a_negative_seed_is_a_usage_error_for_every_command(command, tmp_path, monkeypatch, capsys):
+    """numpy and gymnasium refuse negative seeds deep inside (tracebacks from bh8 render and eval)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main([*command, "--seed", "-1"])
+    assert exit_info.value.code == 2
+    assert "argument --seed: must be" in capsys.readouterr().err

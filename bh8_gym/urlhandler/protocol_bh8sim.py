@@ -62,7 +62,9 @@ def parse_url(url: str) -> dict:
             try:
                 options["seed"] = int(value)
             except ValueError:
-                raise SerialException(f"seed must be an integer, got {value!r} in {url!r}") from None
+                options["seed"] = -1
+            if options["seed"] < 0:
+                raise SerialException(f"seed must be a non-negative integer, got {value!r} in {url!r}")
         elif name == "firmware":
             if value not in FIRMWARE_PROFILES:
                 raise SerialException(f"firmware must be one of {FIRMWARE_PROFILES}, got {value!r} in {url!r}")
