@@ -110,6 +110,17 @@ def write_json_atomic(path: Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
+def read_run_json(path: Path) -> dict:
+    """A run's JSON file (run.json, checkpoints/latest.json); TrainingError names a damaged one."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise TrainingError(f"--resume: cannot read {str(path)!r} ({error}); the run cannot be resumed") from None
+    if not isinstance(data, dict):
+        raise TrainingError(f"--resume: {str(path)!r} holds no JSON object; the run cannot be resumed")
+    return data
+
+
 def copy_atomic(source: Path, destination: Path) -> None:
     """Copy a file (`atomic_write`)."""
     with open(source, "rb") as handle:
@@ -313,7 +324,7 @@ class Trainer:
             raise TrainingError(f"--resume: the checkpoint in {str(self.checkpoint_dir)!r} is incomplete "
                                 "(latest.zip without latest.json: interrupted while it was first written); "
                                 "remove that folder to start the run again")
-        state = json.loads(path.read_text())
+        state = read_run_json(path)
         if state.get("best_mean_return") == float("-inf"):  # older checkpoints: -1.0 and -Infinity, not null
             state.update(best_success_rate=None, best_mean_return=None)
         return state
@@ -447,7 +458,7 @@ def _check_resume_arguments(args: argparse.Namespace, run: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         if args.resume and (args.out / RUN_METADATA_FILE).exists():
-            run_metadata = json.loads((args.out / RUN_METADATA_FILE).read_text())
+            run_metadata = read_run_json(args.out / RUN_METADATA_FILE)
             _check_resume_arguments(args, run_metadata)
             config, seed = run_metadata["config"], run_metadata["seed"]
         else:

@@ -284,3 +284,13 @@ def test_a_negative_seed_is_a_usage_error_for_every_command(command, tmp_path, m
         main([*command, "--seed", "-1"])
     assert exit_info.value.code == 2
     assert "argument --seed: must be" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("damaged", ["run.json", "checkpoints/latest.json"])
+def test_resume_names_a_damaged_run_file(short_run, tmp_path, damaged):
+    _, run, _ = short_run
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    (copy / damaged).write_text('{"config": {"algor')
+    code, _, err = _train("--resume", "--out", copy, "--timesteps", "64")
+    assert code == 2 and f"cannot read {str(copy / damaged)!r}" in err and "Traceback" not in err
