@@ -468,6 +468,22 @@ def test_settings_dataclasses_as_dicts_of_fields(env_id, keyword, fields, attrib
         gym.make(env_id, **{keyword: {name: "text"}})
 
 
+def test_an_env_writes_no_files():
+    """The env's firmware keeps its store in memory: a vector-env worker killed without close() used
+    to leave a temporary store directory behind."""
+    import tempfile
+    from pathlib import Path
+
+    before = set(Path(tempfile.gettempdir()).iterdir())
+    env = gym.make("BH8FingerReach-v0")
+    try:
+        env.reset(seed=0)
+        assert env.unwrapped.firmware.store.directory is None
+        assert set(Path(tempfile.gettempdir()).iterdir()) - before == set()
+    finally:
+        env.close()
+
+
 def test_more_configuration_errors_at_make():
     """A bad render_size is refused at make (it failed only at render()); object_files=[] is an
     error (it fell back to the primitives); copying an env says what to do instead."""

@@ -30,7 +30,6 @@ Only things a host knows on real hardware are in it. `privileged=True` appends s
 """
 from __future__ import annotations
 
-import tempfile
 from typing import Any, Sequence
 
 import gymnasium as gym
@@ -212,9 +211,9 @@ class BH8LoopEnv(gym.Env):
 
         self._base_parameters = self._plant_parameters(
             PlantParameters() if plant_parameters is None else PlantParameters.from_overrides(plant_parameters))
-        self._store = tempfile.TemporaryDirectory(prefix="bh8-env-store-")
         self.plant = HandPlant(params=self._base_parameters, seed=0, gui=render_mode == "human")
-        self.firmware = Firmware(plant=self.plant, store_dir=self._store.name, profile=firmware_profile, seed=0)
+        # The store in memory: an env saves nothing between processes (no files, nothing a killed worker leaves).
+        self.firmware = Firmware(plant=self.plant, store_dir=None, profile=firmware_profile, seed=0)
         self.scene = self._build_scene()
         for line in self.setup_commands:
             self._supervisory(line)
@@ -452,6 +451,3 @@ class BH8LoopEnv(gym.Env):
         if getattr(self, "firmware", None) is not None:
             self.plant.close()
             self.firmware = None
-        if getattr(self, "_store", None) is not None:
-            self._store.cleanup()
-            self._store = None
