@@ -319,6 +319,11 @@ class Firmware:
             self._owns_plant = False
             self.plant.close()
 
+    def save_counters(self) -> None:
+        """Persist the never-reset counters (OD, PTEMP, UPSECS) now, as the hand keeps them through
+        power failures (`bh8 serve` calls this every few seconds after activity)."""
+        self._save()
+
     def snapshot(self) -> FirmwareSnapshot:
         """Firmware and plant state, for `restore` (only between commands: no motion running)."""
         if self._task is not None:

@@ -59,6 +59,10 @@ REALTIME_BURST_S = 0.02
 REALTIME_MAX_LAG_S = 0.25
 # Without --realtime, simulated seconds a command runs between looks at the line for ^C.
 UNPACED_SLICE_S = 0.25
+# Our choice: the longest the never-reset counters (OD, PTEMP, UPSECS) go unsaved after the hand
+# did something; they are "maintained through power failures" (manual §5.3.2, §5.4.2), so a kill
+# of the server loses at most this much.
+COUNTER_SAVE_INTERVAL_S = 10.0
 # Bytes kept for a client that is not reading. Past this the oldest are dropped, as a host UART
 # with nobody reading overruns; a reopening client flushes its input anyway (pyserial does).
 OUTPUT_BACKLOG_LIMIT = 1 << 20
@@ -259,9 +263,12 @@ class _Stopped(Exception):
 class PtyServer:
     """Serves one `Firmware` on a new pty until `stop()`; `device` is the follower's path."""
 
-    def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None):
+    def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None,
+                 counter_save_interval: float = COUNTER_SAVE_INTERVAL_S):
         self.firmware = firmware
         self.realtime = bool(realtime)
+        self.counter_save_interval = float(counter_save_interval)
+        self._counters_due: float | None = None  # monotonic time by which the counters must be saved
         self._leader, self._follower, self.device = open_raw_pty()
         self._wake_read, self._wake_write = os.pipe()
         os.set_blocking(self._wake_read, False)
@@ -340,9 +347,11 @@ class PtyServer:
     def _serve_unpaced(self) -> None:
         firmware = self.firmware
         while not self._stopping:
-            self._wait(None)
+            self._wait(self._seconds_to_counter_save())
+            self._save_counters_if_due()
             data = self._read_input()
             if data:
+                self._counters_changed()
                 firmware.write(data)
                 self._running_firmware = True
                 # In slices, reading the line between them: a ^C can abort a motion that never
@@ -360,7 +369,10 @@ class PtyServer:
         anchor_wall, anchor_sim = time.monotonic(), firmware.time
         while not self._stopping:
             active = firmware.in_loop or not firmware.idle
-            self._wait(REALTIME_SLICE_S if active else None)
+            if active:
+                self._counters_changed()
+            self._wait(REALTIME_SLICE_S if active else self._seconds_to_counter_save())
+            self._save_counters_if_due()
             now = time.monotonic()
             if not active:
                 anchor_wall, anchor_sim = now, firmware.time  # idle time costs no simulated time
@@ -375,6 +387,21 @@ class PtyServer:
                 firmware.run_for(min(max(due, 0.0), REALTIME_BURST_S))
             self._queue_output(firmware.read())
             self._flush_output()
+
+    # -- the counters ------------------------------------------------------------------------
+
+    def _counters_changed(self) -> None:
+        if self._counters_due is None:
+            self._counters_due = time.monotonic() + self.counter_save_interval
+
+    def _seconds_to_counter_save(self) -> float | None:
+        """How long the server may sleep before saving the counters (None: nothing to save)."""
+        return None if self._counters_due is None else max(self._counters_due - time.monotonic(), 0.0)
+
+    def _save_counters_if_due(self) -> None:
+        if self._counters_due is not None and time.monotonic() >= self._counters_due:
+            self._counters_due = None
+            self.firmware.save_counters()
 
     # -- pty plumbing ------------------------------------------------------------------------
 

@@ -222,11 +222,48 @@ class RunawayFirmware:
     def run_until_idle(self, max_seconds=None):
         while True:  # not even its time limit ends it
             pass
+    def save_counters(self):
+        pass
     def shutdown(self):
         print("shut down", file=sys.stderr, flush=True)
 
 sys.exit(virtual_serial.serve(RunawayFirmware()))
 """
+
+_SERVER_SAVING_COUNTERS_EVERY_HALF_SECOND = """
+import sys
+from bh8_gym import virtual_serial
+
+firmware = virtual_serial.build_firmware(sys.argv[1], "4.3", 0, ())
+server = virtual_serial.PtyServer(firmware, counter_save_interval=0.5)
+print(server.device, flush=True)
+server.serve_forever()
+"""
+
+
+def test_the_counters_survive_a_kill_after_the_save_interval(tmp_path):
+    """§5.3.2 OD, §5.4.2 UPSECS: "maintained through power failures". A server killed with
+    SIGKILL (a power failure) keeps what the hand did up to its last periodic save; before, the
+    counters were written only at a save command or a clean exit, and a kill lost them all."""
+    store = tmp_path / "store"
+    process = subprocess.Popen([sys.executable, "-c", _SERVER_SAVING_COUNTERS_EVERY_HALF_SECOND, str(store)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        device = process.stdout.readline().strip()
+        with serial.Serial(device, 9600, timeout=0.05) as port:
+            for line in (b"HI\r", b"GC\r", b"GO\r"):
+                port.write(line)
+                _read_to_prompt(port, limit=400)
+            time.sleep(1.5)  # > the save interval, idle
+    finally:
+        process.kill()
+        process.communicate()
+    link = _serve(store)
+    try:
+        assert all(int(value) > 10 for value in link.lines("GFGET OD")[0].split())  # thousands of counts
+        assert int(link.lines("PGET UPSECS")[0]) >= 1
+    finally:
+        assert _stop(link) == 0
 
 
 def test_sigterm_ends_a_server_stuck_in_a_runaway_command(tmp_path):
