@@ -19,8 +19,8 @@ Observation (float32, `observation_fields` names every entry):
 
 - the decoded feedback fields the LOOP flags enable, coefficients applied, scaled to about
   [-1, 1]: LFV × LFVC / 16 (counts per sample, full speed ≈ 14), (LFS − 128) / 128, LFAP / full
-  range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP × LFDPC / 128 (counts), LFT / 1000
-  (tenths °C; 4.4: /100);
+  range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP × LFDPC / 128 (counts; with LFDPC > 1
+  up to ±LFDPC), LFT / 1000 (tenths °C; 4.4: /100);
 - the previous action, each datum mapped to [-1, 1] (`wrappers.bytes_to_unit`);
 - the fraction of the episode's time elapsed (the host's clock since its first block), then what
   the subclass adds (the arm's phase for grasping, the targets for reaching).
