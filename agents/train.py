@@ -488,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
               f"the trained model is {model}")
     else:
         print(f"trained to {state['num_timesteps']} steps; best held-out success rate {state['best_success_rate']:.2f} "
-              f"(step {state['best_timesteps']}, {args.out / 'best_model.zip'}); outputs in {args.out}")
+              f"(step {state['best_timesteps']}, {args.out / BEST_MODEL_FILE}); outputs in {args.out}")
     return 0
 
 

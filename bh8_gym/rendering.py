@@ -46,10 +46,15 @@ def _camera_for(plant, camera) -> Camera:
     raise ValueError(f"camera must be None, a rendering.Camera or a dict of its fields, got {camera!r}")
 
 
-def render_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
-    """An RGB image (height, width, 3) uint8 of the plant's world, rendered headless (TinyRenderer)."""
+def check_image_size(width, height) -> None:
+    """The image sizes render_frame takes: integers in 16..4096 pixels (ValueError otherwise)."""
     if not (isinstance(width, int) and isinstance(height, int) and 16 <= width <= 4096 and 16 <= height <= 4096):
         raise ValueError(f"width and height must be integers in 16..4096, got {width!r} x {height!r}")
+
+
+def render_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
+    """An RGB image (height, width, 3) uint8 of the plant's world, rendered headless (TinyRenderer)."""
+    check_image_size(width, height)
     cam = _camera_for(plant, camera)
     view = p.computeViewMatrixFromYawPitchRoll(cam.target, cam.distance, cam.yaw, cam.pitch, 0.0, 2, physicsClientId=plant.client)
     projection = p.computeProjectionMatrixFOV(cam.fov, width / height, 0.01, 5.0, physicsClientId=plant.client)

@@ -116,12 +116,16 @@ class BH8LoopEnv(gym.Env):
         self.privileged = bool(privileged)
         self.render_mode = render_mode
         self.render_size = tuple(render_size)
-        if len(self.render_size) != 2 or not all(
-                isinstance(side, (int, np.integer)) and not isinstance(side, bool) and side > 0 for side in self.render_size):
-            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
-        self.randomize = bool(randomize)
         from bh8_gym.plant import dataclass_from  # the plant (and PyBullet) load with the first env
+        from bh8_gym.rendering import check_image_size
 
+        if len(self.render_size) != 2:
+            raise ValueError(f"render_size must be (width, height) in pixels, got {render_size!r}")
+        try:
+            check_image_size(*self.render_size)  # here rather than at the first render()
+        except ValueError as error:
+            raise ValueError(f"render_size {render_size!r}: {error}") from None
+        self.randomize = bool(randomize)
         self.randomization = dataclass_from(RandomizationRanges, randomization, "randomization")
         self.episode_seconds = float(episode_seconds)
         self.coefficients = {"LCVC": int(lcvc), "LFVC": int(lfvc), "LFDPC": int(lfdpc)}
