@@ -79,6 +79,22 @@ def save_png(path, rgb: np.ndarray) -> Path:
     return path
 
 
+def gif_durations(count: int, fps: float) -> list[int]:
+    """Per-frame GIF durations (ms) for `count` frames at `fps`.
+
+    A GIF stores whole centiseconds, so one fixed duration would play a 25.9 ms frame as 20 ms. Each
+    frame ends at its true time rounded to 10 ms instead, and the clip keeps its length. Frames are at
+    least 10 ms: players show shorter ones at 100 ms.
+    """
+    frame_ms = 1000.0 / fps
+    durations, shown = [], 0
+    for index in range(1, count + 1):
+        duration = max(10, int(round(index * frame_ms / 10.0)) * 10 - shown)
+        durations.append(duration)
+        shown += duration
+    return durations
+
+
 def write_animation(frames, path, fps: float = 20.0) -> Path:
     """Write frames as a GIF (`.gif`) or MP4 (`.mp4`, needs the `video` extra: imageio-ffmpeg)."""
     import imageio.v2 as imageio
@@ -92,7 +108,7 @@ def write_animation(frames, path, fps: float = 20.0) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix.lower()
     if suffix == ".gif":
-        imageio.mimsave(path, frames, format="GIF", duration=1000.0 / fps, loop=0)
+        imageio.mimsave(path, frames, format="GIF", duration=gif_durations(len(frames), fps), loop=0)
     elif suffix == ".mp4":
         try:
             import imageio_ffmpeg  # noqa: F401  (only checks that the backend exists)

@@ -103,8 +103,8 @@ def test_nominal_episode_steps_matches_the_env_truncation():
 
 
 def test_scene_for_seed_draws_the_env_reset_including_the_latency(tmp_path):
-    """scenes.scene_for_seed makes reset(seed)'s draws in reset's order: plant parameters, the
-    processing time (SPEC.md §8), then the episode."""
+    """scenes.scene_for_seed makes reset(seed)'s draws from reset's generators: plant parameters and
+    the processing time (SPEC.md §8) from the physics generator, the episode from np_random."""
     from bh8_gym.envs.scenes import scene_for_seed
     from bh8_gym.firmware import Firmware
     from bh8_gym.plant import HandPlant
@@ -140,3 +140,25 @@ def test_bad_latency_settings_name_the_value():
 
     with pytest.raises(ValueError, match="-0.5"):
         PlantRandomizer(Plant(), Firmware()).apply(None, -0.5)
+
+
+def test_a_seed_gives_the_same_scenes_with_or_without_randomisation():
+    """The plant and latency draws come from a generator of their own: episode after episode of one
+    seed, the objects and placements are the same whether the physics is randomised or not, so a
+    nominal evaluation and a randomised one see the same scenes."""
+    episodes = {}
+    for randomize in (True, False):
+        env = gym.make("BH8Grasp-v0", randomize=randomize).unwrapped
+        try:
+            env.reset(seed=7)
+            seen = [env.scene.episode]
+            for _ in range(2):
+                env.reset()
+                seen.append(env.scene.episode)
+            episodes[randomize] = seen
+            processing = env.firmware.processing_time
+        finally:
+            env.close()
+        assert (processing != REALTIME_PROCESSING_S) == randomize
+    assert episodes[True] == episodes[False]
+    assert len({episode.spec for episode in episodes[True]}) == 3

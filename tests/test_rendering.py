@@ -7,9 +7,11 @@ import sys
 import imageio.v2 as imageio
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bh8_gym.cli import main
-from bh8_gym.rendering import write_animation
+from bh8_gym.rendering import gif_durations, write_animation
 
 
 def _frames(count: int, height: int = 48, width: int = 64) -> list[np.ndarray]:
@@ -57,6 +59,15 @@ def test_gif_keeps_every_frame_at_the_frame_rate(tmp_path):
     assert len(read) == 10
     assert reader.get_meta_data(0)["duration"] == pytest.approx(40.0, abs=1.0)  # ms per frame
     assert np.abs(read[3].astype(int) - frames[3]).mean() < 8  # GIF's palette, nothing worse
+
+
+@given(count=st.integers(1, 400), fps=st.floats(0.5, 200.0))
+def test_gif_durations_keep_the_clip_length_in_whole_centiseconds(count, fps):
+    """A GIF frame lasts whole centiseconds: 38.6 fps (25.9 ms) must not play as 50 fps (20 ms)."""
+    durations = gif_durations(count, fps)
+    assert len(durations) == count and all(d >= 10 and d % 10 == 0 for d in durations)
+    if 1000.0 / fps >= 10.0:  # frames players can show: the clip ends within 5 ms of its length
+        assert abs(sum(durations) - count * 1000.0 / fps) <= 5.0 + 1e-6
 
 
 def test_mp4_keeps_every_frame_at_the_frame_rate(tmp_path):

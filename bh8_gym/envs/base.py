@@ -30,6 +30,7 @@ Only things a host knows on real hardware are in it. `privileged=True` appends s
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Sequence
 
 import gymnasium as gym
@@ -38,6 +39,7 @@ import numpy as np
 from bh8_gym.envs.randomization import (
     PlantRandomizer,
     RandomizationRanges,
+    physics_generator,
     sample_plant_parameters,
     sample_processing_time,
 )
@@ -51,6 +53,7 @@ STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
 BITS_PER_BYTE = 10  # 8N1 (§9.1)
+SPREAD_MOTOR = 4
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
 
@@ -105,7 +108,13 @@ class BH8LoopEnv(gym.Env):
                     **{name.lower(): getattr(flags, name) for name in ("LCV", "LCPG", "LFV", "LFS", "LFAP", "LFDP")}}
         for name, value in switches.items():
             check_switch(name, value)
-        self.layout = LoopLayout(motors, flags, lft=lft, firmware=firmware_profile)
+        # The spread has no strain gauge: its LFS would read 255 every cycle (§5.3.2), a byte of the
+        # feedback block (and of the cycle time) that tells the policy nothing, so it is not asked for.
+        motors = LoopLayout(motors, flags, lft=lft, firmware=firmware_profile).motors  # checked, sorted
+        self._spread_lfs_off = bool(flags.LFS) and SPREAD_MOTOR in motors
+        spread_flags = replace(flags, LFS=False)
+        self.layout = LoopLayout(motors, {m: spread_flags if m == SPREAD_MOTOR else flags for m in motors},
+                                 lft=lft, firmware=firmware_profile)
         if not self.layout.control_fields:
             raise ValueError("the LOOP configuration sends no control data (enable LCV or LCPG)")
         if not self.layout.feedback_fields:
@@ -144,6 +153,7 @@ class BH8LoopEnv(gym.Env):
         self.setup_commands: tuple[str, ...] = (
             "HI",
             f"{prefix}FSET {settings}",
+            *((f"{SPREAD_MOTOR}FSET LFS 0",) if self._spread_lfs_off else ()),
             f"PSET LFT {int(lft)} LFDPD {int(lfdpd)}",
             f"PSET BAUD {self.baud // 100}",
         )
@@ -233,6 +243,7 @@ class BH8LoopEnv(gym.Env):
         self._a_block = self.layout.encode_control((), HEADER_FEEDBACK)
         self._elapsed = 0.0
         self._processing_time = self.nominal_processing_time
+        self._physics_rng: np.random.Generator | None = None
         self._cycles = 0
         self._last_values: tuple[int, ...] = ()
 
@@ -395,11 +406,13 @@ class BH8LoopEnv(gym.Env):
         if self.firmware is None:
             raise self._closed_error()
         super().reset(seed=seed)
+        if seed is not None or self._physics_rng is None:
+            self._physics_rng = physics_generator(self.np_random)  # a seed's scenes do not depend on randomize
         self.scene.remove_object()
         self.firmware.restore(self._snapshot, keep_io=keep_io)
         if self.randomize:
-            params = sample_plant_parameters(self._base_parameters, self.np_random, self.randomization)
-            self._randomizer.apply(params, sample_processing_time(self.np_random, self.randomization))
+            params = sample_plant_parameters(self._base_parameters, self._physics_rng, self.randomization)
+            self._randomizer.apply(params, sample_processing_time(self._physics_rng, self.randomization))
         self._begin_episode(self.np_random)
         self._processing_time = self.firmware.processing_time
         self._elapsed = 0.0

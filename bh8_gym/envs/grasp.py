@@ -14,7 +14,9 @@ Reward (simulation only; may use privileged state), each term in info["reward_te
 "reach" −w·mean fingertip-to-object distance / 10 cm; "contact" +w·(fingers touching)/3;
 "lift" +w·clip(object rise / lift height, 0, 1); "success" +bonus on the last step if successful.
 Success: the object's lowest point is more than `success_height` above the table and it touches
-the hand (info["is_success"] every step; the last step's value is the episode's result).
+the hand (info["is_success"] every step; the last step's value is the episode's result). The end of
+the arm's schedule ends the episode as `terminated`: it is part of the task (the observation has the
+clock), so learners must not bootstrap a value past it.
 """
 from __future__ import annotations
 
@@ -201,7 +203,9 @@ class BH8GraspEnv(BH8LoopEnv):
             "lift": w.lift * lift_fraction,
             "success": w.success if (done and success) else 0.0,
         }
-        return sum(terms.values()), terms, success, False
+        # The arm's schedule is the task, not a time limit outside it: its end is terminal (no
+        # bootstrapping past it), and the observation carries the clock that leads there.
+        return sum(terms.values()), terms, success, done
 
     def _camera(self):
         from bh8_gym.rendering import Camera

@@ -1,4 +1,5 @@
-"""Domain randomisation of the simulated hand (PlantParameters), drawn each reset from the env's np_random.
+"""Domain randomisation of the simulated hand (PlantParameters), drawn each reset from a generator
+spawned from the env's seed (`physics_generator`), apart from the scene's draws.
 
 On by default (`randomize=True`); evaluation turns it off. Every range says why it is as wide as
 it is: the constants the manual gives vary from unit to unit and with temperature; the ones we
@@ -13,6 +14,15 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
+
+def physics_generator(np_random: np.random.Generator) -> np.random.Generator:
+    """The generator of the plant and latency draws, spawned from `np_random`'s seed sequence.
+
+    It takes no draw from `np_random`, so the scenes drawn from it (objects, placement) are the
+    same for a seed whether or not the physics is randomised.
+    """
+    return np.random.default_rng(np_random.bit_generator.seed_seq.spawn(1)[0])
+
 
 # PlantParameters fields multiplied by a uniform factor (low, high), in draw order.
 SCALED_FIELDS = (

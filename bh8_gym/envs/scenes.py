@@ -267,10 +267,10 @@ def scene_for_seed(
 ):
     """The scene `env_id`'s `reset(seed=seed)` builds, in `plant`, without building the env.
 
-    Draws exactly what the environment's first reset after `seed` draws, in the same order, from
-    gymnasium's seeded generator: with `randomize`, the plant parameters and then the RealTime
-    processing time (applied to `firmware` when given; the draw is made either way so the episode
-    draw that follows is the env's), then the episode; it applies them and places the scene.
+    Draws exactly what the environment's first reset after `seed` draws, from the same generators:
+    with `randomize`, the plant parameters and then the RealTime processing time from
+    `physics_generator` (the processing time applied to `firmware` when given), and the episode
+    from gymnasium's seeded generator; it applies them and places the scene.
     `ranges`: the env's RandomizationRanges (default: the defaults). Set
     `firmware.cycle_hook = scene.cycle_hook`; the arm's clock starts at the first RealTime cycle.
     The plant should be freshly built with the environment's base PlantParameters.
@@ -283,6 +283,7 @@ def scene_for_seed(
     from bh8_gym.envs.randomization import (
         PlantRandomizer,
         RandomizationRanges,
+        physics_generator,
         sample_plant_parameters,
         sample_processing_time,
     )
@@ -291,8 +292,9 @@ def scene_for_seed(
     rng, _ = seeding.np_random(seed)
     scene = build_scene(env_id, plant, options)
     if randomize:
-        params = sample_plant_parameters(plant.params, rng, ranges)
-        processing_time = sample_processing_time(rng, ranges)
+        physics_rng = physics_generator(rng)
+        params = sample_plant_parameters(plant.params, physics_rng, ranges)
+        processing_time = sample_processing_time(physics_rng, ranges)
         PlantRandomizer(plant, firmware).apply(params, processing_time if firmware is not None else None)
     scene.begin_episode(scene.sample_episode(rng))
     return scene
