@@ -212,6 +212,16 @@ def _error_code(lines: list[str]) -> int | None:
     return None
 
 
+def _open_error_detail(error: Exception, port_name: str) -> str:
+    """What went wrong opening a port, said once: pyserial wraps the OS error in "could not open
+    port X: [Errno 2] ..." and bh8sim:// already says "cannot open 'bh8sim://...': ..."."""
+    cause = error.__cause__ or error.__context__
+    if isinstance(error, serial.SerialException) and type(cause) in (OSError, FileNotFoundError, PermissionError) \
+            and cause.strerror:
+        return cause.strerror
+    return str(error).removeprefix(f"cannot open {port_name!r}: ")
+
+
 class BarrettHand:
     """A BarrettHand on a serial port (manual §5, §6; SPEC.md §2, §5).
 
@@ -280,7 +290,7 @@ class BarrettHand:
         try:
             self._port = serial.serial_for_url(self._port_name, **options)
         except (*PORT_ERRORS, ValueError) as error:
-            raise HandConnectionError(f"cannot open {self._port_name!r}: {error}") from error
+            raise HandConnectionError(f"cannot open {self._port_name!r}: {_open_error_detail(error, self._port_name)}") from error
         self._port_failed = False
 
     def disconnect(self) -> None:

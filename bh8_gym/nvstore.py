@@ -129,6 +129,8 @@ class NVStore:
     def _lock(self) -> None:
         """Own the directory (before reading it); remove temporary files a killed writer left."""
         directory = self.directory
+        if directory.exists() and not directory.is_dir():  # mkdir would only say "File exists"
+            raise StoreError(f"the store must be a directory; {str(directory)!r} is a file")
         try:
             directory.mkdir(parents=True, exist_ok=True)
             fd = os.open(directory / LOCK_FILENAME, os.O_RDWR | os.O_CREAT, 0o666)

@@ -509,7 +509,11 @@ def test_unopenable_port_name_raises_connection_error():
     """A port name that does not exist → HandConnectionError naming it."""
     with pytest.raises(HandConnectionError) as info:
         BarrettHand("/dev/does-not-exist-bh8")
-    assert "/dev/does-not-exist-bh8" in str(info.value)
+    # Said once: not pyserial's "could not open port ...: [Errno 2] ..." after our own "cannot open".
+    assert str(info.value) == "cannot open '/dev/does-not-exist-bh8': No such file or directory"
+    with pytest.raises(HandConnectionError) as info:
+        BarrettHand("bh8sim://?seed=x")
+    assert str(info.value).count("cannot open") == 1 and "'x'" in str(info.value)
 
 
 # ---------------------------------------------------------------------------------------------

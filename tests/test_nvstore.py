@@ -120,6 +120,15 @@ def test_a_directory_has_one_owner_at_a_time(tmp_path):
     assert loaded_and_closed(tmp_path).globals["BAUD"] == 96
 
 
+def test_a_file_where_the_store_directory_should_be_is_named(tmp_path):
+    """`--state hand.json` (a file, not a directory) is refused saying so, not with mkdir's "File exists"."""
+    path = tmp_path / "hand.json"
+    path.write_text("{}")
+    with pytest.raises(StoreError, match="must be a directory; .*hand.json' is a file"):
+        NVStore(path).load()
+    assert path.read_text() == "{}"
+
+
 def test_temporary_files_of_a_killed_writer_are_removed(tmp_path):
     loaded_and_closed(tmp_path)
     (tmp_path / ".nvstore-abc123.tmp").write_text("{half")

@@ -526,6 +526,8 @@ def test_bh8sim_bad_urls_name_the_problem():
         ("bh8sim://?colour=red", "'colour'"),
         ("bh8sim://host", "'host'"),
         ("bh8sim://?object=banana", "banana"),
+        ("bh8sim://?seed=1&seed=2", "'seed' given more than once"),  # which would win is a guess
+        ("bh8sim://?state=/tmp/a&firmware=4.3&state=/tmp/b", "'state' given more than once"),
     ]:
         with pytest.raises(serial.SerialException, match=needle):
             serial.serial_for_url(url)
@@ -604,6 +606,7 @@ def test_bh8sim_url_options_parse_or_fail_clearly(pairs):
     except serial.SerialException:
         return
     given_pairs = dict(pairs)
+    assert all([n for n, _ in pairs].count(name) == 1 for name in ("seed", "firmware", "state") if name in given_pairs)
     assert options["seed"] == int(given_pairs.get("seed", 0))
     assert options["firmware"] == given_pairs.get("firmware", "4.3")
     assert options["state"] == given_pairs.get("state")

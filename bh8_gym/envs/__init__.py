@@ -10,7 +10,7 @@ Gaussian policies. The heavy modules (PyBullet, the firmware) load only when an 
 from __future__ import annotations
 
 # Safety nets: the environments end episodes themselves on their simulated clock (grasp: the arm
-# schedule, 2.0 s; reach: episode_seconds, 1.0 s), which at 38400 baud is 297 and 215 steps.
+# schedule, 2.0 s; reach: episode_seconds, 1.0 s), which at 38400 baud is 309 and 215 steps.
 # These limits only bind if a user makes episodes longer than their defaults allow.
 GRASP_MAX_EPISODE_STEPS = 1000
 REACH_MAX_EPISODE_STEPS = 1000

@@ -3,12 +3,13 @@
 The hand hangs palm-down on an arm above a table with one object (objects.py); the arm placed it
 with a realistic error (±2 cm, ±15°, palm 1-3 cm above the object). Phases on the host's clock
 (scenes.ArmSchedule): grasp 0.8 s (the policy drives the fingers, the arm is still), lift 0.7 s
-(the wrist rises 10 cm), hold 0.5 s (optionally shaking). At 38400 baud one step is 6.73 ms
-(9-byte control block + 13-byte feedback block + 1 ms), so an episode is 297 steps.
+(the wrist rises 10 cm), hold 0.5 s (optionally shaking). At 38400 baud one step is 6.47 ms
+(9-byte control block + 12-byte feedback block + 1 ms), so an episode is 309 steps.
 
 Default LOOP configuration (the lead's design): motors 1-4; per motor LCV (signed velocity byte,
 LCVC 1: 1/16 count per sample per unit) and LCPG (gain byte: the grasp force, U = LCPG/4 × velocity
-error, §6.1); feedback LFS (strain) and LFAP (absolute position); no LFV, LFDP, LFT.
+error, §6.1); feedback LFS (strain, the fingers only: the spread has no gauge) and LFAP (absolute
+position); no LFV, LFDP, LFT.
 
 Reward (simulation only; may use privileged state), each term in info["reward_terms"]:
 "reach" −w·mean fingertip-to-object distance / 10 cm; "contact" +w·(fingers touching)/3;

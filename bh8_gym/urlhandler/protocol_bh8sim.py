@@ -57,6 +57,9 @@ def parse_url(url: str) -> dict:
         pairs = urllib.parse.parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
     except ValueError as error:
         raise SerialException(f"malformed options in {url!r}: {error}") from None
+    repeated = sorted({name for name, _ in pairs if name != "object" and [n for n, _ in pairs].count(name) > 1})
+    if repeated:  # which one would win is a guess the user should not have to make
+        raise SerialException(f"option {repeated[0]!r} given more than once in {url!r}; only object may repeat")
     for name, value in pairs:
         if name == "seed":
             try:
