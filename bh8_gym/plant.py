@@ -69,6 +69,8 @@ OUTER_ABS_GEAR_RATIO = kin.OUTER_ABS_COUNTS_PER_DEG_262
 SPREAD_GEAR_RATIO = kin.SPREAD_COUNTS_PER_DEG_262
 
 OBJECT_KINDS = ("box", "cylinder", "sphere", "capsule", "urdf", "mesh")
+# Bullet's btBroadphaseProxy collision filter groups, PyBullet's defaults for new bodies.
+_DEFAULT_FILTER, _STATIC_FILTER, _ALL_FILTERS = 1, 2, -1
 
 
 class PlantError(ValueError):
@@ -1013,6 +1015,7 @@ class HandPlant:
         if state_id not in self._saved:
             raise PlantError(f"no saved plant state with id {state_id!r}")
         p.restoreState(stateId=state_id, physicsClientId=self._client)
+        self._renew_contact_pairs()
         self._state = self._saved[state_id].copy()
         self._sent_command = None  # resend the joint motor command of the restored state
         position, orientation = self._state.wrist_target
@@ -1020,6 +1023,26 @@ class HandPlant:
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
             maxForce=self.params.wrist_max_force, physicsClientId=self._client,
         )
+
+    def _renew_contact_pairs(self) -> None:
+        """Drop every body's broadphase pairs and contact manifolds, re-adding its links in body order.
+
+        restoreState restores poses and velocities but keeps the contact manifolds the last episode
+        left and their order, which sets the solver's order and warm start: the same seed then gave
+        a trajectory that depended on the episodes run before (diverging after ~100 steps). Changing
+        a link's collision filter removes and re-adds it, so every reset starts from the same contact
+        state. The filters set are PyBullet's defaults: static bodies (no mass, no joints) group 2,
+        mask all but static; everything else group 1, mask all.
+        """
+        client = self._client
+        for index in range(p.getNumBodies(physicsClientId=client)):
+            body = p.getBodyUniqueId(index, physicsClientId=client)
+            joints = p.getNumJoints(body, physicsClientId=client)
+            static = joints == 0 and p.getDynamicsInfo(body, -1, physicsClientId=client)[0] == 0.0
+            group, mask = (_STATIC_FILTER, _ALL_FILTERS ^ _STATIC_FILTER) if static else (_DEFAULT_FILTER, _ALL_FILTERS)
+            for link in range(-1, joints):
+                p.setCollisionFilterGroupMask(body, link, 0, 0, physicsClientId=client)
+                p.setCollisionFilterGroupMask(body, link, group, mask, physicsClientId=client)
 
     def remove_state(self, state_id: int) -> None:
         if self._saved.pop(state_id, None) is None:

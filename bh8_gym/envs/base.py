@@ -53,7 +53,6 @@ STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
 BITS_PER_BYTE = 10  # 8N1 (§9.1)
-SPREAD_MOTOR = 4
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
 
@@ -95,6 +94,8 @@ class BH8LoopEnv(gym.Env):
         render_mode: str | None,
         render_size: tuple[int, int],
     ):
+        from bh8_gym.plant import SPREAD_MOTOR  # the plant (and PyBullet) load with the first env
+
         if baud not in SUPPORTED_BAUDS:
             raise ValueError(f"baud must be one of {SUPPORTED_BAUDS} (manual §5.4.1 BAUD), got {baud!r}")
         if render_mode not in (None, "rgb_array", "human"):
@@ -125,7 +126,7 @@ class BH8LoopEnv(gym.Env):
         self.privileged = bool(privileged)
         self.render_mode = render_mode
         self.render_size = tuple(render_size)
-        from bh8_gym.plant import dataclass_from  # the plant (and PyBullet) load with the first env
+        from bh8_gym.plant import dataclass_from
         from bh8_gym.rendering import check_image_size
 
         if len(self.render_size) != 2:
