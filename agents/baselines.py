@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from bh8_gym.agents.evaluate import episode_object
+from bh8_gym.envs.base import END_TOLERANCE_S
 from bh8_gym.envs.wrappers import bytes_to_unit
 
 SPREAD_COUNTS_PER_DEGREE = 17.5  # BH8-262, SPEC.md §1
@@ -119,6 +120,9 @@ class SupervisoryBaseline:
         # The arm waits for the close (a user's script lifts after C returns): move the arm's clock
         # so its schedule is at the start of the lift.
         base.scene.start_time = firmware.time - base.scene.arm.grasp_seconds
+        # ... and the episode ends with the arm's schedule, as the LOOP policies' do: the env's own
+        # clock (2 s of cycles from LOOP entry) would hold the object through the grasp time again.
+        schedule_end = base.scene.start_time + base.scene.arm.total_seconds - END_TOLERANCE_S
         total, steps, done = 0.0, 0, False
         while not done:
             obs, reward, terminated, truncated, info = env.step(self._hold)
@@ -126,7 +130,7 @@ class SupervisoryBaseline:
                 tracker.observe(info.get("feedback_block"))
             total += float(reward)
             steps += 1
-            done = terminated or truncated
+            done = terminated or truncated or firmware.time >= schedule_end
             if frames is not None and (steps % every == 0 or done):
                 frames.append(env.render())
         return total, steps, info, grasp_seconds, grasp_seconds

@@ -14,7 +14,8 @@ import gymnasium as gym
 
 def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int | None = None,
              continuous: bool = True, render_mode: str | None = None) -> gym.Env:
-    """`gym.make(env_id, **env_kwargs)` (bh8_gym registered), wrapped in `ContinuousActions`."""
+    """`gym.make(env_id, **env_kwargs)` (bh8_gym registered), wrapped in `ContinuousActions`, with a
+    TimeLimit no shorter than the env's longest episode."""
     import bh8_gym  # noqa: F401  (registers the environments)
 
     kwargs = copy.deepcopy(dict(env_kwargs or {}))
@@ -22,6 +23,12 @@ def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int
         kwargs["render_mode"] = render_mode
     try:
         env = gym.make(env_id, **kwargs)
+        # The registry's max_episode_steps is a backstop; a longer arm schedule or episode_seconds
+        # would be cut short of its end (success bonus lost, bootstrapped as truncated).
+        limit = env.unwrapped.longest_episode_steps() + 1  # the env's own end comes first
+        if env.spec.max_episode_steps is not None and env.spec.max_episode_steps < limit:
+            env.close()
+            env = gym.make(env_id, **{**kwargs, "max_episode_steps": limit})
     except (gym.error.NameNotFound, gym.error.VersionNotFound, gym.error.NamespaceNotFound,
             gym.error.DeprecatedEnv) as error:
         raise ValueError(f"unknown environment {env_id!r} ({error}); bh8-gym has BH8Grasp-v0 and "

@@ -286,15 +286,18 @@ def plot_training_curve(rows: Sequence[dict[str, float]], path: Path) -> Path:
 
 
 def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int, seed: int,
-               baseline=None, every: int = 3) -> Path:
-    """Render `episodes` sample episodes (headless TinyRenderer) into one GIF."""
+               baseline=None, every: int | None = None) -> Path:
+    """Render `episodes` sample episodes (headless TinyRenderer) into one real-time GIF, a frame
+    every `every` steps (default `rendering.steps_per_frame`: frames of at least 20 ms)."""
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.rendering import write_animation
+    from bh8_gym.rendering import steps_per_frame, write_animation
 
     env = make_env(env_id, env_kwargs, render_mode="rgb_array")
     frames = []
     try:
         base = env.unwrapped
+        if every is None:
+            every = steps_per_frame(base.cycle_seconds)
         fps = 1.0 / (float(base.cycle_seconds) * every)
         for episode in range(episodes):
             if baseline is not None and hasattr(baseline, "run_episode"):

@@ -289,6 +289,9 @@ class Trainer:
         replay = self.checkpoint_dir / "latest_replay_buffer.pkl"
         if hasattr(model, "replay_buffer") and replay.exists():
             model.load_replay_buffer(replay)
+        # SB3's load re-seeds the envs with the run's seed: the resumed half would replay the first
+        # half's scenes. A seed of its own, fixed by the checkpoint's step, keeps the run deterministic.
+        model.set_random_seed(self.seed + int(model.num_timesteps))
         return model
 
     def save_checkpoint(self, model, state: dict) -> None:

@@ -79,17 +79,26 @@ def save_png(path, rgb: np.ndarray) -> Path:
     return path
 
 
+MIN_GIF_FRAME_MS = 20  # browsers play GIF frames of 10 ms or less at 100 ms
+
+
+def steps_per_frame(step_seconds: float) -> int:
+    """The fewest env steps of `step_seconds` that make a frame of at least MIN_GIF_FRAME_MS, so an
+    animation of every n-th step plays in real time (one frame per 6.5 ms step would play 15x slow)."""
+    return max(1, math.ceil(MIN_GIF_FRAME_MS / (1000.0 * step_seconds) - 1e-9))
+
+
 def gif_durations(count: int, fps: float) -> list[int]:
     """Per-frame GIF durations (ms) for `count` frames at `fps`.
 
     A GIF stores whole centiseconds, so one fixed duration would play a 25.9 ms frame as 20 ms. Each
     frame ends at its true time rounded to 10 ms instead, and the clip keeps its length. Frames are at
-    least 10 ms: players show shorter ones at 100 ms.
+    least MIN_GIF_FRAME_MS: browsers show shorter ones at 100 ms (so above 50 fps a clip plays slow).
     """
     frame_ms = 1000.0 / fps
     durations, shown = [], 0
     for index in range(1, count + 1):
-        duration = max(10, int(round(index * frame_ms / 10.0)) * 10 - shown)
+        duration = max(MIN_GIF_FRAME_MS, int(round(index * frame_ms / 10.0)) * 10 - shown)
         durations.append(duration)
         shown += duration
     return durations

@@ -468,6 +468,14 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
     assert report["summary"]["success_ci_low"] == pytest.approx(low)
     assert (out / "table.md").read_text().splitlines()[-1].startswith("| **all** | 3 |")
     assert (out / "episodes.gif").read_bytes()[:6] == b"GIF89a"  # the README's main job writes one too
+    # Real time in frames browsers honour: every 3rd step of the reach env's 4.65 ms made 14 ms frames,
+    # stored partly as 10 ms, which browsers play at 100 ms (5x slow).
+    from PIL import Image, ImageSequence
+
+    with Image.open(out / "episodes.gif") as gif:
+        durations = [frame.info["duration"] for frame in ImageSequence.Iterator(gif)]
+    assert min(durations) >= 20
+    assert sum(durations) / 1000 == pytest.approx(report["episodes"][0]["sim_seconds"], rel=0.1)  # the same episode
 
 
 def test_eval_cli_env_kwargs_reach_the_env_and_bad_ones_exit_2(tmp_path, capsys):
@@ -538,6 +546,22 @@ def test_baselines_run_on_the_grasp_env(name):
     assert summary["episodes"] == 2
     assert all(r.length > 0 and r.peak_strain is not None for r in results)
     assert summary["grasped_episodes"] >= 1, results
+
+
+def test_the_supervisory_baseline_episode_ends_with_the_arm_schedule():
+    """Its arm starts lifting when GTC returns; its episode must end when that schedule does (as the
+    LOOP policies' do), not after the env's 2 s of cycles, which held the object 0.8 s longer."""
+    from bh8_gym.agents.baselines import SupervisoryBaseline
+    from bh8_gym.agents.env_factory import make_env
+
+    env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False})
+    try:
+        SupervisoryBaseline(env).run_episode(env, seed=3, tracker=None)
+        base = env.unwrapped
+        on_schedule = base.firmware.time - base.scene.start_time
+        assert base.arm.total_seconds <= on_schedule < base.arm.total_seconds + base.cycle_seconds
+    finally:
+        env.close()
 
 
 # -- deploy ----------------------------------------------------------------------------------

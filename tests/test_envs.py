@@ -411,6 +411,42 @@ def test_a_closed_env_says_so():
         env.reset(seed=0)
     with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):
         env.step(np.zeros(4, dtype=np.int16))
+    with pytest.raises(gym.error.ClosedEnvironmentError, match="closed"):
+        env.render()
+
+
+def test_step_before_reset_is_a_reset_needed_error():
+    """The unwrapped env (no OrderEnforcing) says what to do instead of failing in the reward."""
+    env = gym.make("BH8Grasp-v0", render_mode="rgb_array").unwrapped
+    try:
+        with pytest.raises(gym.error.ResetNeeded, match="reset"):
+            env.step(np.zeros(8, dtype=np.int16))
+    finally:
+        env.close()
+
+
+def test_agents_make_a_time_limit_no_shorter_than_the_episode():
+    """A longer arm schedule than the registry's 1000-step backstop allows would be cut short (the
+    success bonus lost, the episode bootstrapped as truncated): what train, eval and deploy make
+    lets it end on its own clock."""
+    from bh8_gym.agents.env_factory import make_env
+
+    env = make_env("BH8Grasp-v0", {"arm": {"hold_seconds": 5.0}, "randomize": False})
+    try:
+        longest = env.unwrapped.longest_episode_steps()
+        assert longest == env.unwrapped.nominal_episode_steps() > 1000 == gym.spec("BH8Grasp-v0").max_episode_steps
+        assert env.spec.max_episode_steps == longest + 1
+        env.reset(seed=0)
+        steps, terminated, truncated = 0, False, False
+        while not (terminated or truncated):
+            _, _, terminated, truncated, _ = env.step(np.zeros(8, dtype=np.float32))
+            steps += 1
+        assert terminated and not truncated and steps == longest
+    finally:
+        env.close()
+    randomized = gym.make("BH8Grasp-v0").unwrapped
+    assert randomized.longest_episode_steps() == 324  # 0.7 ms processing, the fastest drawn
+    randomized.close()
 
 
 def test_continuous_actions_wrapper_is_rebuilt_from_its_spec_and_passes_check_env():

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bh8_gym.cli import main
-from bh8_gym.rendering import gif_durations, write_animation
+from bh8_gym.rendering import gif_durations, steps_per_frame, write_animation
 
 
 def _frames(count: int, height: int = 48, width: int = 64) -> list[np.ndarray]:
@@ -63,11 +63,18 @@ def test_gif_keeps_every_frame_at_the_frame_rate(tmp_path):
 
 @given(count=st.integers(1, 400), fps=st.floats(0.5, 200.0))
 def test_gif_durations_keep_the_clip_length_in_whole_centiseconds(count, fps):
-    """A GIF frame lasts whole centiseconds: 38.6 fps (25.9 ms) must not play as 50 fps (20 ms)."""
+    """A GIF frame lasts whole centiseconds: 38.6 fps (25.9 ms) must not play as 50 fps (20 ms), nor
+    51.5 fps (19.4 ms, `bh8 eval`'s old GIF) with some 10 ms frames, which browsers show at 100 ms."""
     durations = gif_durations(count, fps)
-    assert len(durations) == count and all(d >= 10 and d % 10 == 0 for d in durations)
-    if 1000.0 / fps >= 10.0:  # frames players can show: the clip ends within 5 ms of its length
+    # every frame at least 20 ms: browsers play 10 ms frames at 100 ms
+    assert len(durations) == count and all(d >= 20 and d % 10 == 0 for d in durations)
+    if 1000.0 / fps >= 20.0:  # frames players can show: the clip ends within 5 ms of its length
         assert abs(sum(durations) - count * 1000.0 / fps) <= 5.0 + 1e-6
+
+
+def test_steps_per_frame_makes_frames_of_at_least_20_ms():
+    """The grasp env's 6.47 ms steps: every 4th (25.9 ms); reach's 4.65 ms: every 5th; 9600 baud's 32 ms: each."""
+    assert [steps_per_frame(s) for s in (0.00646875, 0.00465, 0.02, 0.03225)] == [4, 5, 1, 1]
 
 
 def test_mp4_keeps_every_frame_at_the_frame_rate(tmp_path):

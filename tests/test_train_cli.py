@@ -174,6 +174,29 @@ def test_resume_without_timesteps_trains_to_the_runs_own_total(tmp_path):
     assert out.startswith("trained to 64 steps")
 
 
+def test_resume_draws_new_scenes_deterministically(tmp_path, monkeypatch):
+    """SB3's load re-seeds the envs with the run's seed, so a resumed run replayed the scenes its
+    first half trained on; it now seeds them with seed + the checkpoint's step (still deterministic)."""
+    import bh8_gym.envs.base as base
+
+    seeds = []
+    prepare = base.BH8LoopEnv.prepare_episode
+
+    def logged(env, seed=None, keep_io=False):
+        seeds.append(seed)
+        prepare(env, seed, keep_io)
+
+    monkeypatch.setattr(base.BH8LoopEnv, "prepare_episode", logged)
+    config = _write_config(tmp_path / "tiny.toml", total=64)
+    run = tmp_path / "run"
+    assert _train("--config", config, "--out", run, "--timesteps", "32", "--seed", "3")[0] == 0
+    first = [seed for seed in seeds if seed is not None]
+    seeds.clear()
+    assert _train("--resume", "--out", run, "--timesteps", "64")[0] == 0
+    resumed = [seed for seed in seeds if seed is not None]
+    assert 3 in first and 3 not in resumed and 3 + 32 in resumed
+
+
 def test_resume_puts_back_the_checkpoints_best_model(tmp_path):
     """A run killed after an evaluation wrote best_model.zip but before the checkpoint that
     would record it: --resume restores the checkpoint's own best model (it compares against that

@@ -245,6 +245,7 @@ class BH8LoopEnv(gym.Env):
         self._elapsed = 0.0
         self._processing_time = self.nominal_processing_time
         self._physics_rng: np.random.Generator | None = None
+        self._episode_started = False
         self._cycles = 0
         self._last_values: tuple[int, ...] = ()
 
@@ -346,13 +347,24 @@ class BH8LoopEnv(gym.Env):
         return elapsed + control_block_size * self._seconds_per_byte + processing_time + self._feedback_seconds
 
     def nominal_episode_steps(self) -> int:
-        """Steps after reset until truncation on the nominal latency (`bh8 deploy`'s default cycles)."""
-        elapsed = self.next_elapsed(0.0, len(self._a_block), self.nominal_processing_time)
+        """Steps after reset until the episode's end on the nominal latency (`bh8 deploy`'s default cycles)."""
+        return self._episode_steps(self.nominal_processing_time)
+
+    def _episode_steps(self, processing_time: float) -> int:
+        elapsed = self.next_elapsed(0.0, len(self._a_block), processing_time)
         steps = 0
         while not elapsed >= self.episode_seconds - END_TOLERANCE_S:
-            elapsed = self.next_elapsed(elapsed, self._control_block_size, self.nominal_processing_time)
+            elapsed = self.next_elapsed(elapsed, self._control_block_size, processing_time)
             steps += 1
         return steps
+
+    def longest_episode_steps(self) -> int:
+        """The most steps an episode can take: on the fastest randomised latency (nominal without
+        randomisation). A TimeLimit shorter than this cuts episodes before their end."""
+        fastest = self.nominal_processing_time
+        if self.randomize:
+            fastest = min(fastest, self.randomization.processing_time[0])
+        return self._episode_steps(fastest)
 
     # ------------------------------------------------------------------ public observation builder
 
@@ -419,6 +431,7 @@ class BH8LoopEnv(gym.Env):
         self._elapsed = 0.0
         self._prev_action = [0] * self._n_act
         self._cycles = 0
+        self._episode_started = True
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         self.prepare_episode(seed)
@@ -431,6 +444,8 @@ class BH8LoopEnv(gym.Env):
         return self._observation(values), info
 
     def step(self, action):
+        if not self._episode_started:
+            raise gym.error.ResetNeeded("call reset() before step()") if self.firmware is not None else self._closed_error()
         control = self._validate_action(action)
         block = self.layout.encode_control(control, HEADER_CONTROL_FEEDBACK)
         values = self._cycle(block)
@@ -453,6 +468,8 @@ class BH8LoopEnv(gym.Env):
         return self._observation(values), reward, terminated, truncated and not terminated, info
 
     def render(self):
+        if self.firmware is None:
+            raise self._closed_error()
         if self.render_mode == "rgb_array":
             from bh8_gym.rendering import render_frame
 

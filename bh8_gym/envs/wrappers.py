@@ -13,9 +13,6 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
-# The shortest frame record_episode writes by default: 2 centiseconds, the shortest GIF delay players honour.
-MIN_FRAME_SECONDS = 0.02
-
 
 def unit_to_bytes(unit: np.ndarray, low: np.ndarray, high: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Map floats in [-1, 1] (clipped) linearly onto the integer range low..high, rounding to nearest.
@@ -90,18 +87,17 @@ def record_episode(
 ) -> dict:
     """Run one episode with `policy(obs) -> action`, render every `every`-th step, write a GIF/MP4.
 
-    `env` must have render_mode "rgb_array". `every` defaults to the fewest steps that last
-    MIN_FRAME_SECONDS (a GIF stores whole centiseconds and players show shorter frames at 100 ms,
-    so one frame per 6.7 ms step played 15x slow); fps defaults to real time (the env's control
-    rate divided by `every`). Returns {"steps", "return", "is_success", "path"}.
+    `env` must have render_mode "rgb_array". `every` defaults to `rendering.steps_per_frame` (frames
+    of at least 20 ms: browsers show shorter GIF frames at 100 ms); fps defaults to real time (the
+    env's control rate divided by `every`). Returns {"steps", "return", "is_success", "path"}.
     """
-    from bh8_gym.rendering import write_animation
+    from bh8_gym.rendering import steps_per_frame, write_animation
 
     if env.render_mode != "rgb_array":
         raise ValueError(f"record_episode needs render_mode='rgb_array', got {env.render_mode!r}")
     cycle_seconds = env.unwrapped.cycle_seconds
     if every is None:
-        every = max(1, math.ceil(MIN_FRAME_SECONDS / cycle_seconds - 1e-9))
+        every = steps_per_frame(cycle_seconds)
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every!r}")
     obs, info = env.reset(seed=seed)
