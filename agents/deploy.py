@@ -13,12 +13,15 @@ The sequence is what the environment does to its simulated firmware, sent throug
    observation builder (the same code the policy was trained on);
 3. stop on the cycle budget, Ctrl-C, SIGTERM or SIGHUP (at the next cycle boundary: a block is
    never cut in half), a strain above `--max-strain` or a temperature above
-   `--max-temperature`: one last block with zero velocity, ^C to leave LOOP, then the exit
+   `--max-temperature` (read with PGET TEMP before LOOP, and every cycle if the env's LOOP has
+   LFT): one last block with zero velocity, ^C to leave LOOP, then the exit
    action (`--on-exit`, default "GT": finger power off; the worm drives hold the grasp unpowered,
    SPEC.md §1, so nothing drops and nothing heats; "T": every motor off, the spread becomes
-   back-drivable; "none": leave LOOP only).
+   back-drivable; "none": leave LOOP only);
+4. switch the hand back to `--baud`, the rate it was found at.
 
-Every control and feedback block is logged as one JSONL line (hex bytes, cycle, wall time).
+Every control and feedback block is logged as one JSONL line (hex bytes, cycle, and `t`: seconds
+of the host's monotonic clock, for intervals between records).
 The arm phase in the observation follows the env's ArmSchedule from the first control block:
 the robot arm carrying the hand must run the same grasp/lift/hold schedule.
 Policies trained with privileged (simulation-only) observations are refused.
@@ -115,6 +118,8 @@ class Deployment:
         self.hand_error = None  # the port or hand failure that ended the run (BH8Error), if one did
         self.safe_exit_error = None  # why finish() could not leave the hand safe (BH8Error), if it could not
         self._stop_request = None  # set by a signal handler: why to stop at the next cycle boundary
+        self.found_baud = hand.baudrate
+        self.baud_error = None  # why the hand could not be switched back to found_baud, if it could not
 
     def _log(self, record: dict) -> None:
         self.log_file.write(json.dumps(record) + "\n")
@@ -130,12 +135,20 @@ class Deployment:
                 continue  # done above by client.set_baud, which must switch the host's rate too
             hand.command(line)
             self._log({"event": "command", "line": line, "t": time.monotonic()})
+        # The shipped envs' feedback has no LFT: the limit is checked here, before LOOP, and every
+        # cycle only when the env's LOOP carries the temperature.
+        temperature = hand.temperature()
+        self._log({"event": "temperature", "celsius": temperature, "t": time.monotonic()})
+        if temperature > self.max_temperature:
+            raise SafetyStop(f"temperature {temperature:.1f} C above the limit {self.max_temperature} C before LOOP")
         loop_line = self.base.loop_command
         self.layout = hand.start_loop(loop_line[: -len("LOOP")] or "GS")
         self._log({"event": "loop", "line": loop_line, "layout": repr(self.layout), "t": time.monotonic()})
-        if self.layout != self.base.layout:
+        if not self.layout.same_blocks(self.base.layout):
             hand.stop_loop()
-            raise DeployError(f"the hand's LOOP layout {self.layout!r} is not the env's {self.base.layout!r}")
+            raise DeployError(f"the hand's LOOP blocks are not the env's: the hand's feedback is "
+                              f"{self.layout.feedback_fields} and control {self.layout.control_fields}, "
+                              f"the env's {self.base.layout.feedback_fields} and {self.base.layout.control_fields}")
 
     def _exchange(self, values, header: bytes = b"C"):
         feedback = self.hand.update_raw(values, header)
@@ -200,28 +213,34 @@ class Deployment:
                 except BH8Error as error:
                     # Kept apart from the reason: after a dead port this is only the failed reopen.
                     self.safe_exit_error = error
+        self.log_stop(reason)
+        return reason
+
+    def log_stop(self, reason: str) -> None:
+        """The log's last record: why the run stopped."""
         # blocks: all exchanged ("A" and stop block included); policy_cycles: those the policy chose
         stop = {"event": "stop", "reason": reason, "blocks": self.blocks, "policy_cycles": self.policy_cycles,
                 "t": time.monotonic()}
         if self.safe_exit_error is not None:
             stop["safe_exit_error"] = error_text(self.safe_exit_error)
         self._log(stop)
-        return reason
 
     @contextlib.contextmanager
     def _stop_on_signals(self):
-        """While running: SIGTERM and SIGHUP (a lab's supervisor, `kill`, a closed terminal) ask for
-        the same safe stop as Ctrl-C, taken at the next cycle boundary so the hand never sees half a
-        block. Signal handlers can only be set from the main thread; elsewhere nothing changes."""
+        """While running: Ctrl-C, SIGTERM and SIGHUP (a lab's supervisor, `kill`, a closed terminal)
+        ask for a safe stop at the next cycle boundary, so the hand never sees half a block and the
+        zero-velocity block is sent (a KeyboardInterrupt mid-exchange lost both). Signal handlers can
+        only be set from the main thread; elsewhere a KeyboardInterrupt still stops the run."""
         if threading.current_thread() is not threading.main_thread():
             yield
             return
 
         def request_stop(signum, _frame):
             if self._stop_request is None:
-                self._stop_request = f"terminated ({signal.Signals(signum).name})"
+                self._stop_request = ("interrupted (Ctrl-C)" if signum == signal.SIGINT
+                                      else f"terminated ({signal.Signals(signum).name})")
 
-        with handling_signals((signal.SIGTERM, signal.SIGHUP), request_stop):
+        with handling_signals((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), request_stop):
             yield
 
     def finish(self) -> None:
@@ -246,6 +265,20 @@ class Deployment:
         if self.on_exit != "none":
             hand.command(self.on_exit, check=False)
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
+        self.restore_baud()
+
+    def restore_baud(self) -> None:
+        """Switch the hand back to the rate it was found at, so the next `bh8 deploy` or `bh8 term`
+        with the same `--baud` reaches it (PSET BAUD lasts until power-off). Not a safety matter:
+        a failure is kept in `baud_error` and reported, never raised."""
+        if self.hand.baudrate == self.found_baud:
+            return
+        try:
+            self.hand.set_baud(self.found_baud)
+        except BH8Error as error:
+            self.baud_error = error
+            return
+        self._log({"event": "baud", "rate": self.found_baud, "t": time.monotonic()})
 
 
 def error_text(error: BaseException) -> str:
@@ -324,18 +357,28 @@ def run(args: argparse.Namespace) -> int:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
         return 2
     try:
-        log_file = args.log.open("w")
+        args.log.open("a").close()  # writable? (without truncating: the old log survives a bad port)
     except OSError as exc:
         env.close()
         print(f"bh8 deploy: cannot write the log: {exc}", file=sys.stderr)
         return 2
     try:
         cycles = env.unwrapped.nominal_episode_steps() if args.cycles is None else args.cycles
-        with log_file, BarrettHand(args.port, baudrate=args.baud) as hand:
+        with BarrettHand(args.port, baudrate=args.baud) as hand, args.log.open("w") as log_file:
             deployment = Deployment(hand, policy, env, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,
                                     on_exit=args.on_exit, clock=args.clock)
-            deployment.setup(env.unwrapped.baud)
+            try:
+                deployment.setup(env.unwrapped.baud)
+            except SafetyStop as stop:
+                deployment.restore_baud()
+                deployment.log_stop(f"safety stop: {stop}")
+                print(f"bh8 deploy: safety stop before LOOP: {stop}; log in {args.log}", file=sys.stderr)
+                return 3
+            except DeployError as refused:
+                deployment.restore_baud()
+                deployment.log_stop(f"refused: {refused}")
+                raise
             reason = deployment.run(cycles)
     except (DeployError, BH8Error, ValueError) as exc:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
@@ -349,6 +392,9 @@ def run(args: argparse.Namespace) -> int:
         commands = "zero-velocity block, ^C" + ("" if args.on_exit == "none" else f", {args.on_exit}")
         print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {error_text(deployment.safe_exit_error)}",
               file=sys.stderr)
+    if deployment.baud_error is not None:
+        print(f"bh8 deploy: the hand stays at {env.unwrapped.baud} baud (switching back to {args.baud} failed: "
+              f"{deployment.baud_error}); connect with --baud {env.unwrapped.baud}", file=sys.stderr)
     if failed:
         return 1
     return 0 if reason == "done" else 3

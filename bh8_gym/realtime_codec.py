@@ -133,6 +133,12 @@ class LoopLayout:
             self.motors, self.flags, self.lft, self.firmware
         ) == (other.motors, other.flags, other.lft, other.firmware)
 
+    def same_blocks(self, other: "LoopLayout") -> bool:
+        """True if both layouts encode and decode the very same bytes, whatever firmware they name
+        (4.3 and 4.4 differ only with LFT, or 4.4's own data)."""
+        return (self.control_fields, self.feedback_fields, self._control_struct.format, self._feedback_struct.format) == (
+            other.control_fields, other.feedback_fields, other._control_struct.format, other._feedback_struct.format)
+
     def control_block_size(self, header: bytes | int) -> int:
         """Bytes in a control block with this header (b'C', b'c', b'A', b'a', b'\\x03' or its byte
         value), the header included."""

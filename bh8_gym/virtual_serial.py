@@ -7,9 +7,9 @@ Barrett's C++ API) opens the device like a USB serial adapter.
 
 Two ways to run simulated time (SPEC.md §6):
 - unpaced (default): after each read from the pty the firmware runs until it waits for input and
-  its output is written back; a command answers as soon as its simulated motion ends. Bytes that
-  arrive while it runs are handed over when it is done, so only a ^C sent together with the
-  command can abort it. An idle server blocks in poll() with no timeout and uses no CPU.
+  its output is written back; a command answers as soon as its simulated motion ends. The line is
+  read between slices of `UNPACED_SLICE_S` simulated seconds, so a ^C that arrives while a motion
+  runs aborts it at the next slice. An idle server blocks in poll() with no timeout and uses no CPU.
 - `--realtime`: simulated time follows the wall clock in slices of `REALTIME_SLICE_S`; bytes are
   fed to the firmware while a motion runs, so ^C (0x03) aborts it with ERR 16384 (§5.5 case 4).
   Idle time between commands costs no simulated time here either (Contract 2), so an idle paced
@@ -335,8 +335,10 @@ class PtyServer:
         self._leader = self._follower = self._wake_read = self._wake_write = -1
 
     def _make_link(self, path: Path) -> None:
-        if path.is_symlink() and not path.exists():
-            path.unlink()  # dangling: left behind by a server that was killed
+        # Left behind by a server that was killed: dangling, or pointing at the pty just opened
+        # (the kernel reuses the freed pty's number; no live server can hold this one).
+        if path.is_symlink() and (not path.exists() or os.readlink(path) == self.device):
+            path.unlink()
         elif path.exists() or path.is_symlink():
             raise FileExistsError(f"--link {path}: already exists; remove it or choose another path")
         os.symlink(self.device, path)

@@ -7,7 +7,6 @@ output lines each ending "\\n\\r", then the prompt "=> ".
 """
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import time

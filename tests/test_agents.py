@@ -598,10 +598,11 @@ def test_deploy_runs_cycles_on_bh8sim_and_logs_decodable_blocks(tmp_path, capsys
     assert records[-1]["event"] == "stop" and records[-1]["reason"] == "done"
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
 def test_deploy_stops_safely_on_a_termination_signal(tmp_path, signum):
-    """`kill` (or a closed terminal) mid-run is a safe stop like Ctrl-C, not a hand left in LOOP with
-    its last velocities: the zero-velocity block, ^C, the exit action, a logged reason, exit code 3."""
+    """Ctrl-C, `kill` or a closed terminal mid-run is a safe stop at the next cycle boundary, not a
+    hand left in LOOP with its last velocities: the zero-velocity block, ^C, the exit action, a
+    logged reason, exit code 3. (Ctrl-C as a KeyboardInterrupt mid-exchange skipped the zero block.)"""
     policy = _export_untrained_reach_policy(tmp_path)
     log = tmp_path / "deploy.jsonl"
     process = subprocess.Popen(
@@ -619,11 +620,12 @@ def test_deploy_stops_safely_on_a_termination_signal(tmp_path, signum):
     finally:
         process.kill()
     assert process.returncode == 3, err
-    name = signal.Signals(signum).name
-    assert f"stopped: terminated ({name})" in out
+    reason = "interrupted (Ctrl-C)" if signum == signal.SIGINT else f"terminated ({signal.Signals(signum).name})"
+    assert f"stopped: {reason}" in out
     records = [json.loads(line) for line in log.read_text().splitlines()]
-    assert records[-1]["event"] == "stop" and records[-1]["reason"] == f"terminated ({name})"
-    assert records[-2] == {**records[-2], "event": "command", "line": "GT"}  # the default exit action
+    assert records[-1]["event"] == "stop" and records[-1]["reason"] == reason
+    assert records[-3] == {**records[-3], "event": "command", "line": "GT"}  # the default exit action
+    assert records[-2] == {**records[-2], "event": "baud", "rate": 9600}  # back to the rate it was found at
     last_block = [r for r in records if "cycle" in r][-1]
     control = bytes.fromhex(last_block["control"])
     assert control[0:1] == b"C" and set(control[1:]) == {0}  # LCV 0, LCPG 0: no motion, no torque

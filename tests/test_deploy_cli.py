@@ -288,3 +288,41 @@ def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_
     assert "then leaving LOOP (^C) failed" in error_text(error)
     stop = json.loads(log.read_text().splitlines()[-1])
     assert stop["safe_exit_error"] == error_text(error)
+
+
+def test_the_temperature_limit_is_checked_before_loop(policy_path, tmp_path, capsys):
+    """The shipped envs' LOOP has no LFT, so a per-cycle temperature check never saw a reading:
+    `--max-temperature` is checked with PGET TEMP before LOOP (a safety stop, exit 3, logged)."""
+    from bh8_gym.cli import main
+
+    log = tmp_path / "deploy.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log),
+                 "--max-temperature", "0"])
+    assert code == 3
+    assert "safety stop before LOOP: temperature" in capsys.readouterr().err
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert not any("cycle" in r for r in records)  # never entered LOOP
+    assert records[-1]["event"] == "stop" and "above the limit 0.0 C before LOOP" in records[-1]["reason"]
+    assert records[-2] == {**records[-2], "event": "baud", "rate": 9600}  # left at the rate it was found at
+
+
+def test_a_port_that_cannot_be_opened_leaves_the_old_log_alone(policy_path, tmp_path, capsys):
+    """A mistyped port must not wipe the previous run's log (and its stop record)."""
+    from bh8_gym.cli import main
+
+    log = tmp_path / "deploy.jsonl"
+    log.write_text('{"event": "stop", "reason": "safety stop: the last run"}\n')
+    assert main(["deploy", "--port", "/dev/does-not-exist-bh8", "--policy", str(policy_path), "--log", str(log)]) == 1
+    assert "cannot open" in capsys.readouterr().err
+    assert log.read_text() == '{"event": "stop", "reason": "safety stop: the last run"}\n'
+
+
+def test_a_firmware_44_hand_with_the_same_blocks_is_accepted(policy_path, tmp_path, capsys):
+    """Without LFT the 4.3 and 4.4 blocks are byte for byte the same (SPEC.md §7): deploy runs."""
+    from bh8_gym.cli import main
+
+    log = tmp_path / "deploy.jsonl"
+    code = main(["deploy", "--port", "bh8sim://?seed=0&firmware=4.4", "--policy", str(policy_path),
+                 "--cycles", "3", "--log", str(log)])
+    assert code == 0, capsys.readouterr().err
+    assert json.loads(log.read_text().splitlines()[-1])["reason"] == "done"

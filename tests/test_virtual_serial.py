@@ -104,6 +104,26 @@ def test_link_symlink_created_and_removed(tmp_path):
 
 def test_close_and_reopen_keeps_state(tmp_path):
     """Contract 3: a client may close and reopen the device; the hand keeps its (unsaved) state."""
+
+
+def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
+    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty number
+    to the next server, so the stale link then points at the new server's own device. A restart
+    with the same --link must take it over, not refuse it as 'already exists'."""
+    link_path = tmp_path / "ttyUSB0"
+    first = _serve(tmp_path / "store1", "--link", str(link_path))
+    first.port.close()
+    first.process.kill()
+    first.process.wait(timeout=20)
+    assert os.path.islink(link_path)
+    second = _serve(tmp_path / "store2", "--link", str(link_path))
+    try:
+        assert os.readlink(link_path) == second.device
+        second.write(b"\r")
+        second.read_until(PROMPT, timeout=10)
+    finally:
+        assert _stop(second) == 0
+    assert not os.path.lexists(link_path)
     link = _serve(tmp_path / "store")
     try:
         assert link.lines("1FSET DP 4321") == []
