@@ -161,7 +161,7 @@ def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
 
 def test_resume_without_timesteps_trains_to_the_runs_own_total(tmp_path):
     """`bh8 train --timesteps 32` interrupted, then `--resume` alone: the run's own 32 steps, not the
-    config's train.total_timesteps (64 here; the README's 300 k main job would have gone on to 500 k)."""
+    config's train.total_timesteps (64 here; the README's 400 k main job would have gone on to 500 k)."""
     config = _write_config(tmp_path / "tiny.toml", total=64)
     run = tmp_path / "run"
     assert _train("--config", config, "--out", run, "--timesteps", "32")[0] == 0
