@@ -5,8 +5,9 @@ The sequence is what the environment does to its simulated firmware, sent throug
 
 1. connect at `--baud` (the hand's current rate, 9600 after power-up), switch to the env's rate
    with PSET BAUD (client.set_baud), then send the env's supervisory setup script (HI, the LOOP
-   flags and coefficients, LFT/LFDPD) and enter LOOP on the env's motors; the layout the hand
-   reports must equal the env's, or deploy refuses to run;
+   flags and coefficients, LFT/LFDPD) and enter LOOP on the env's motors; the blocks the hand
+   reports must be the env's, or deploy refuses to run; Ctrl-C here sends ^C (stopping HI) and
+   switches the rate back;
 2. every cycle: policy(observation) -> floats in [-1, 1] -> LOOP bytes with the env's own mapping
    (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
    block is decoded by the client's LoopLayout and turned into the next observation by the env's
@@ -267,6 +268,18 @@ class Deployment:
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
         self.restore_baud()
 
+    def abandon_setup(self) -> None:
+        """Ctrl-C during the setup (HI takes seconds): ^C stops a motion in progress (or leaves
+        LOOP), the rate goes back to the one found, and the log gets its stop record."""
+        try:
+            self.hand.abort()
+        except BH8Error as error:
+            self.safe_exit_error = error
+        else:
+            self._log({"event": "command", "line": "^C", "t": time.monotonic()})
+            self.restore_baud()
+        self.log_stop("interrupted (Ctrl-C) during the setup")
+
     def restore_baud(self) -> None:
         """Switch the hand back to the rate it was found at, so the next `bh8 deploy` or `bh8 term`
         with the same `--baud` reaches it (PSET BAUD lasts until power-off). Not a safety matter:
@@ -307,7 +320,8 @@ exit status:
        names the cycle), or the safe-exit commands could not be sent
   2    usage error: a bad option value, an unwritable log, or a policy deploy refuses
   3    stopped early, safely: a safety limit, a non-finite policy output, Ctrl-C, SIGTERM or SIGHUP
-  130  Ctrl-C while connecting or in the setup, before the first block
+  130  Ctrl-C while connecting or in the setup, before the first block (in the setup: ^C to the
+       hand, which stops HI, and the rate switched back)
 """
 
 
@@ -379,6 +393,11 @@ def run(args: argparse.Namespace) -> int:
                 deployment.restore_baud()
                 deployment.log_stop(f"refused: {refused}")
                 raise
+            except KeyboardInterrupt:
+                deployment.abandon_setup()
+                print(f"bh8 deploy: interrupted (Ctrl-C) during the setup, before the first block; log in {args.log}",
+                      file=sys.stderr)
+                return 130
             reason = deployment.run(cycles)
     except (DeployError, BH8Error, ValueError) as exc:
         print(f"bh8 deploy: {exc}", file=sys.stderr)

@@ -326,3 +326,35 @@ def test_a_firmware_44_hand_with_the_same_blocks_is_accepted(policy_path, tmp_pa
                  "--cycles", "3", "--log", str(log)])
     assert code == 0, capsys.readouterr().err
     assert json.loads(log.read_text().splitlines()[-1])["reason"] == "done"
+
+
+def test_ctrl_c_during_the_setup_stops_the_hand_and_switches_the_rate_back(policy_path, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while HI runs (seconds on a hand): ^C goes to the hand (§5.5 case 4 stops a motion),
+    the hand returns to the rate it was found at, the log ends with its stop record; exit 130."""
+    from bh8_gym.cli import main
+    from bh8_gym.client import BarrettHand
+
+    sent = []
+    command, abort = BarrettHand.command, BarrettHand.abort
+
+    def command_interrupted_at_hi(self, line, *args, **kwargs):
+        sent.append(line)
+        if line == "HI":
+            raise KeyboardInterrupt
+        return command(self, line, *args, **kwargs)
+
+    def recorded_abort(self):
+        sent.append("^C")
+        return abort(self)
+
+    monkeypatch.setattr(BarrettHand, "command", command_interrupted_at_hi)
+    monkeypatch.setattr(BarrettHand, "abort", recorded_abort)
+    log = tmp_path / "deploy.jsonl"
+    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log)]) == 130
+    assert "interrupted (Ctrl-C) during the setup" in capsys.readouterr().err
+    assert sent[-2:] == ["HI", "^C"]
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert not any("cycle" in r for r in records)
+    assert [r["event"] for r in records[-3:]] == ["command", "baud", "stop"]
+    assert records[-2]["rate"] == 9600
+    assert records[-1]["reason"] == "interrupted (Ctrl-C) during the setup"
