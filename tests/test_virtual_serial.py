@@ -48,6 +48,17 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _check_link_serves_then_goes(link: PtyLink, link_path: Path) -> None:
+    """--link points at the server's device, which answers; a clean exit removes the link."""
+    try:
+        assert os.readlink(link_path) == link.device
+        link.write(b"\r")
+        link.read_until(PROMPT, timeout=10)
+    finally:
+        assert _stop(link) == 0
+    assert not os.path.lexists(link_path)
+
+
 def _initialise(link, timeout: float = 60.0) -> None:
     assert link.lines("HI", timeout=timeout) == []
 
@@ -82,14 +93,7 @@ def test_link_symlink_created_and_removed(tmp_path):
     a killed server is replaced; an existing file is refused with a clear error."""
     link_path = tmp_path / "ttyUSB0"
     os.symlink("/nonexistent/pts/99", link_path)
-    link = _serve(tmp_path / "store", "--link", str(link_path))
-    try:
-        assert os.readlink(link_path) == link.device
-        link.write(b"\r")
-        link.read_until(PROMPT, timeout=10)
-    finally:
-        assert _stop(link) == 0
-    assert not os.path.lexists(link_path)
+    _check_link_serves_then_goes(_serve(tmp_path / "store", "--link", str(link_path)), link_path)
 
     link_path.write_text("not a device")
     process = subprocess.run(
@@ -102,10 +106,6 @@ def test_link_symlink_created_and_removed(tmp_path):
     assert link_path.read_text() == "not a device"
 
 
-def test_close_and_reopen_keeps_state(tmp_path):
-    """Contract 3: a client may close and reopen the device; the hand keeps its (unsaved) state."""
-
-
 def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
     """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty number
     to the next server, so the stale link then points at the new server's own device. A restart
@@ -116,14 +116,11 @@ def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
     first.process.kill()
     first.process.wait(timeout=20)
     assert os.path.islink(link_path)
-    second = _serve(tmp_path / "store2", "--link", str(link_path))
-    try:
-        assert os.readlink(link_path) == second.device
-        second.write(b"\r")
-        second.read_until(PROMPT, timeout=10)
-    finally:
-        assert _stop(second) == 0
-    assert not os.path.lexists(link_path)
+    _check_link_serves_then_goes(_serve(tmp_path / "store2", "--link", str(link_path)), link_path)
+
+
+def test_close_and_reopen_keeps_state(tmp_path):
+    """Contract 3: a client may close and reopen the device; the hand keeps its (unsaved) state."""
     link = _serve(tmp_path / "store")
     try:
         assert link.lines("1FSET DP 4321") == []
