@@ -268,17 +268,20 @@ class Deployment:
             self._log({"event": "command", "line": self.on_exit, "t": time.monotonic()})
         self.restore_baud()
 
-    def abandon_setup(self) -> None:
-        """Ctrl-C during the setup (HI takes seconds): ^C stops a motion in progress (or leaves
-        LOOP), the rate goes back to the one found, and the log gets its stop record."""
-        try:
-            self.hand.abort()
-        except BH8Error as error:
-            self.safe_exit_error = error
-        else:
+    def abandon_setup(self, reason: str, *, interrupted: bool = False) -> None:
+        """The setup stopped short of the policy: after Ctrl-C (`interrupted`; HI takes seconds) ^C
+        stops a motion in progress or leaves LOOP; then the rate goes back to the one found, and the
+        log gets its stop record."""
+        if interrupted:
+            try:
+                self.hand.abort()
+            except BH8Error as error:
+                self.safe_exit_error = error  # the port is gone: no rate to switch back either
+                self.log_stop(reason)
+                return
             self._log({"event": "command", "line": "^C", "t": time.monotonic()})
-            self.restore_baud()
-        self.log_stop("interrupted (Ctrl-C) during the setup")
+        self.restore_baud()
+        self.log_stop(reason)
 
     def restore_baud(self) -> None:
         """Switch the hand back to the rate it was found at, so the next `bh8 deploy` or `bh8 term`
@@ -385,16 +388,14 @@ def run(args: argparse.Namespace) -> int:
             try:
                 deployment.setup(env.unwrapped.baud)
             except SafetyStop as stop:
-                deployment.restore_baud()
-                deployment.log_stop(f"safety stop: {stop}")
+                deployment.abandon_setup(f"safety stop: {stop}")
                 print(f"bh8 deploy: safety stop before LOOP: {stop}; log in {args.log}", file=sys.stderr)
                 return 3
             except DeployError as refused:
-                deployment.restore_baud()
-                deployment.log_stop(f"refused: {refused}")
+                deployment.abandon_setup(f"refused: {refused}")
                 raise
             except KeyboardInterrupt:
-                deployment.abandon_setup()
+                deployment.abandon_setup("interrupted (Ctrl-C) during the setup", interrupted=True)
                 print(f"bh8 deploy: interrupted (Ctrl-C) during the setup, before the first block; log in {args.log}",
                       file=sys.stderr)
                 return 130

@@ -1029,7 +1029,7 @@ class HandPlant:
 
         restoreState restores poses and velocities but keeps the contact manifolds the last episode
         left and their order, which sets the solver's order and warm start: the same seed then gave
-        a trajectory that depended on the episodes run before (diverging after ~100 steps). Changing
+        a trajectory that depended on the episodes run before (diverging after ~250 steps). Changing
         a link's collision filter removes and re-adds it, so every reset starts from the same contact
         state. The filters set are PyBullet's defaults: static bodies (no mass, no joints) group 2,
         mask all but static; everything else group 1, mask all.
