@@ -3,7 +3,8 @@
 Output directory layout (`--out DIR`):
 
     run.json                     algorithm, env id and kwargs, seed, the resolved config
-    checkpoints/latest.zip       the model, written atomically (temp file, then os.replace)
+    checkpoints/latest.zip       the model; a checkpoint's files are replaced as one unit (each staged
+                                 as NAME.next first), so a kill leaves the old checkpoint or the new one
     checkpoints/latest_replay_buffer.pkl   SAC only
     checkpoints/latest.json      timestep counter, the run's total, best evaluation so far, next
                                  evaluation step
@@ -50,6 +51,8 @@ EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci
                       "std_return", "mean_length", "episodes")
 CHECKPOINT_DIR = "checkpoints"
 BEST_MODEL_FILE = "best_model.zip"
+# A checkpoint's files besides latest.json, which names their step and is replaced after them.
+CHECKPOINT_FILES = ("latest.zip", "latest_replay_buffer.pkl", BEST_MODEL_FILE)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 # Keyword arguments of the SB3 constructor that the trainer sets itself, not [hyperparameters].
 TRAINER_ARGUMENTS = ("policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs",
@@ -125,6 +128,11 @@ def copy_atomic(source: Path, destination: Path) -> None:
     """Copy a file (`atomic_write`)."""
     with open(source, "rb") as handle:
         atomic_write(destination, lambda out: shutil.copyfileobj(handle, out))
+
+
+def _staged(path: Path) -> Path:
+    """Where a checkpoint file waits until its whole checkpoint is written (`Trainer.save_checkpoint`)."""
+    return path.with_name(path.name + ".next")
 
 
 def save_model_atomic(model, path: Path) -> None:
@@ -295,15 +303,41 @@ class Trainer:
         return model
 
     def save_checkpoint(self, model, state: dict) -> None:
-        """Model, SAC replay buffer, then the state file (last: it names the step the others hold)."""
-        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        save_model_atomic(model, self.checkpoint_dir / "latest.zip")
+        """The checkpoint's files replace the last checkpoint's as one unit, so a kill at any point
+        leaves a model and a state file of the same step. Each file is first staged beside its
+        predecessor (NAME.next, each written atomically): the model, SAC's replay buffer, the best
+        model, then the state file, whose staged copy marks the set complete. Then every staged file
+        replaces its predecessor, the state file last (`_finish_checkpoint`, which the next run
+        repeats if a kill came in between; a set killed before its state file is discarded)."""
+        directory = self.checkpoint_dir
+        directory.mkdir(parents=True, exist_ok=True)
+        self._finish_checkpoint()
+        save_model_atomic(model, _staged(directory / "latest.zip"))
         if getattr(model, "replay_buffer", None) is not None:
-            atomic_write(self.checkpoint_dir / "latest_replay_buffer.pkl", model.save_replay_buffer)
+            atomic_write(_staged(directory / "latest_replay_buffer.pkl"), model.save_replay_buffer)
         best = self.out_dir / BEST_MODEL_FILE
         if best.exists():
-            copy_atomic(best, self.checkpoint_dir / BEST_MODEL_FILE)
-        write_json_atomic(self.checkpoint_dir / "latest.json", {**state, "num_timesteps": int(model.num_timesteps)})
+            copy_atomic(best, _staged(directory / BEST_MODEL_FILE))
+        write_json_atomic(_staged(directory / "latest.json"), {**state, "num_timesteps": int(model.num_timesteps)})
+        self._finish_checkpoint()
+
+    def _finish_checkpoint(self) -> None:
+        """Put a complete staged checkpoint (its state file staged) in place, or discard an incomplete
+        one and the temporary files of a staged file a kill cut short (`atomic_write`'s NAME.*.tmp)."""
+        directory = self.checkpoint_dir
+        for leftover in directory.glob("*.next.*.tmp"):
+            leftover.unlink()
+        state = _staged(directory / "latest.json")
+        complete = state.exists()
+        for name in CHECKPOINT_FILES:
+            staged = _staged(directory / name)
+            if staged.exists():
+                if complete:
+                    os.replace(staged, directory / name)
+                else:
+                    staged.unlink()
+        if complete:
+            os.replace(state, directory / "latest.json")
 
     @contextlib.contextmanager
     def _stopping_on_signals(self):
@@ -325,8 +359,8 @@ class Trainer:
         path = self.checkpoint_dir / "latest.json"
         if not path.exists():
             raise TrainingError(f"--resume: the checkpoint in {str(self.checkpoint_dir)!r} is incomplete "
-                                "(latest.zip without latest.json: interrupted while it was first written); "
-                                "remove that folder to start the run again")
+                                "(latest.zip without latest.json: not written by this version's checkpoints, "
+                                "which replace both together); remove that folder to start the run again")
         state = read_run_json(path)
         if state.get("best_mean_return") == float("-inf"):  # older checkpoints: -1.0 and -Infinity, not null
             state.update(best_success_rate=None, best_mean_return=None)
@@ -360,6 +394,7 @@ class Trainer:
         torch.set_num_threads(1)
         if total_timesteps is not None and total_timesteps < 1:
             raise ValueError(f"total_timesteps must be positive, got {total_timesteps}")
+        self._finish_checkpoint()  # one a kill interrupted
         has_checkpoint = (self.checkpoint_dir / "latest.zip").exists()
         if resume and not has_checkpoint:
             raise TrainingError(f"--resume: no checkpoint in {str(self.checkpoint_dir)!r}")

@@ -107,11 +107,70 @@ def test_zero_or_negative_counts_are_usage_errors_not_the_default(tmp_path, caps
 
 
 def test_resume_refuses_an_incomplete_checkpoint(tmp_path):
-    """latest.zip without latest.json (killed while the first checkpoint was written)."""
+    """latest.zip without latest.json (a folder this version's checkpoints never leave)."""
     (tmp_path / "run" / "checkpoints").mkdir(parents=True)
     (tmp_path / "run" / "checkpoints" / "latest.zip").write_bytes(b"PK")
     code, _, err = _train("--config", _write_config(tmp_path / "tiny.toml"), "--out", tmp_path / "run", "--resume")
     assert code == 2 and "incomplete" in err and "latest.json" in err, err
+
+
+class _Killed(BaseException):
+    """A kill at a chosen file operation (nothing in the trainer catches a BaseException)."""
+
+
+@pytest.mark.parametrize("kill_at", range(1, 5))
+def test_a_kill_during_a_checkpoint_leaves_a_model_and_state_of_the_same_step(tmp_path, monkeypatch, kill_at):
+    """The checkpoint at step 64 is killed at each of its 4 renames (model staged, state staged, model
+    in place, state in place). The resumed run loads a model and a state file of one step (before,
+    a kill between latest.zip and latest.json paired the new model with the old step's bookkeeping),
+    then finishes with no staged or temporary file left."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.train import Trainer
+
+    config = _write_config(tmp_path / "tiny.toml", checkpoint_freq=32)
+    run = tmp_path / "run"
+    assert _train("--config", config, "--out", run, "--timesteps", "32")[0] == 0
+    checkpoints = run / "checkpoints"
+    replace, renames = os.replace, []
+
+    def killed_replace(source, destination):
+        if Path(destination).parent == checkpoints:
+            renames.append(Path(destination).name)
+            if len(renames) == kill_at:
+                raise _Killed
+        replace(source, destination)
+
+    monkeypatch.setattr(os, "replace", killed_replace)
+    with pytest.raises(_Killed):
+        _train("--resume", "--out", run, "--timesteps", "64")
+    monkeypatch.setattr(os, "replace", replace)
+    assert renames[-1] == ["latest.zip.next", "latest.json.next", "latest.zip", "latest.json"][kill_at - 1]
+
+    loaded = {}
+    read_state, resume_model = Trainer._read_checkpoint_state, Trainer._resume_model
+
+    def spy_state(trainer):
+        state = read_state(trainer)
+        loaded["state"] = state["num_timesteps"]
+        return state
+
+    def spy_model(trainer, env):
+        model = resume_model(trainer, env)
+        loaded["model"] = model.num_timesteps
+        return model
+
+    (checkpoints / "latest.zip.next.k1ll3d.tmp").write_bytes(b"PK")  # what a SIGKILL mid-write leaves
+    monkeypatch.setattr(Trainer, "_read_checkpoint_state", spy_state)
+    monkeypatch.setattr(Trainer, "_resume_model", spy_model)
+    code, out, err = _train("--resume", "--out", run, "--timesteps", "96")
+    assert code == 0, err
+    # Killed before the staged state file exists (renames 1-2): the step-32 checkpoint; after: step 64.
+    expected = 32 if kill_at <= 2 else 64
+    assert loaded["state"] == loaded["model"] == expected, loaded
+    assert json.loads((checkpoints / "latest.json").read_text())["num_timesteps"] == 96
+    assert PPO.load(checkpoints / "latest.zip", device="cpu").num_timesteps == 96
+    assert not list(checkpoints.glob("*.next")) and not list(checkpoints.glob("*.tmp"))
 
 
 # -- resume --------------------------------------------------------------------------------------
