@@ -170,9 +170,15 @@ class MotorChannel:
         `position` in counts, `velocity` in counts/s, `dt` the physics step in seconds.
         """
         mode = self.mode
-        if mode == OFF:
+        if mode == LOOP or mode == VELOCITY:  # first: RealTime control runs every motor in LOOP
+            u = self.gain * (self.velocity_command - velocity * self.period)
+            target_velocity = self.velocity_command / self.period
+        elif mode == OFF:
             return 0.0, nan
-        if mode == POSITION or mode == HOLD:
+        elif mode == TORQUE:
+            u = self.motor_command
+            return copysign(DIRECT_DRIVE_VELOCITY_CPS, u) if u else 0.0, abs(u) / U_MAX
+        else:  # POSITION, HOLD
             if mode == HOLD:
                 desired, desired_velocity = self.set_point, 0.0
             else:
@@ -180,12 +186,6 @@ class MotorChannel:
             error = desired - position
             u = self.gain * error
             target_velocity = desired_velocity + error / dt
-        elif mode == TORQUE:
-            u = self.motor_command
-            return copysign(DIRECT_DRIVE_VELOCITY_CPS, u) if u else 0.0, abs(u) / U_MAX
-        else:  # VELOCITY, LOOP
-            u = self.gain * (self.velocity_command - velocity * self.period)
-            target_velocity = self.velocity_command / self.period
         if u > U_MAX:
             u = U_MAX
         elif u < -U_MAX:

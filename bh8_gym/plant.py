@@ -486,20 +486,19 @@ class HandPlant:
         if command != self._sent_command:
             # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain
             # so the worm holds its position (a velocity-only lock drifts with PyBullet's solver).
-            p.setJointMotorControlArray(
-                self.hand_id, self.joint_indices, p.POSITION_CONTROL, targetPositions=command[0],
-                targetVelocities=command[1], forces=command[2], positionGains=command[3],
-                velocityGains=self._velocity_gains, physicsClientId=client,
-            )
+            # Positional arguments (targetPositions, targetVelocities, forces, positionGains,
+            # velocityGains, physicsClientId): PyBullet parses keywords 0.4 µs slower, every step.
+            p.setJointMotorControlArray(self.hand_id, self.joint_indices, p.POSITION_CONTROL, *command,
+                                        self._velocity_gains, client)
             self._sent_command = tuple(map(list, command))  # copies: the state lists are updated in place
-        p.stepSimulation(physicsClientId=client)
+        p.stepSimulation(client)
         self._read_joints()
         self._update_after_step()
 
     def _read_joints(self) -> None:
         """Joint positions, velocities and applied torques (tuples, replaced whole, never mutated)."""
         state = self._state
-        joints = p.getJointStates(self.hand_id, self.joint_indices, physicsClientId=self._client)
+        joints = p.getJointStates(self.hand_id, self.joint_indices, self._client)  # (body, joints, physicsClientId)
         state.previous_positions = state.positions
         state.positions, state.velocities, _, state.torques = zip(*joints)
 
@@ -536,13 +535,6 @@ class HandPlant:
         """True if finger f's drive was pushing `load` (N·m, reflected to its joint) closing at its limit."""
         capacity = self._state.drive_capacity[f]
         return capacity > 0.0 and load >= self.params.squeeze_latch_fraction * capacity
-
-    def _drive(self, joint: int, target: float, force: float) -> None:
-        state = self._state
-        state.held[joint] = False
-        state.target_velocities[joint] = target
-        state.forces[joint] = force
-        state.position_gains[joint] = 0.0
 
     def _command_joints(self) -> None:
         """Joint targets and force limits for this step from the drives and the clutch state."""
@@ -635,22 +627,25 @@ class HandPlant:
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
         friction = prm.spread_friction_torque
-        velocity = state.drive_velocity[3]
-        self._drive(s2, 0.0, friction)
-        if not state.drive_on[3]:
-            self._drive(s1, 0.0, friction)
+        held[s2] = False
+        target_velocities[s2], forces[s2], position_gains[s2] = 0.0, friction, 0.0
+        if not drive_on[3]:
+            held[s1] = False
+            target_velocities[s1], forces[s1], position_gains[s1] = 0.0, friction, 0.0
             return
-        force = state.drive_fraction[3] * self._spread_capacity
+        velocity = drive_velocity[3]
+        force = drive_fraction[3] * self._spread_capacity
         if force < friction:
             force = friction
         spread = q[s1]
         if (velocity > 0.0 and spread >= self._spread_high_stop) or (velocity < 0.0 and spread <= self._spread_low_stop):
             # Stalled at a stop: hold the stop itself (fighting PyBullet's limit row would drift).
             state.hold_positions[s1] = state.target_positions[s1] = self._spread_high if velocity > 0.0 else self._spread_low
-            state.held[s1] = True
-            state.target_velocities[s1], state.forces[s1], state.position_gains[s1] = 0.0, force, prm.lock_position_gain
+            held[s1] = True
+            target_velocities[s1], forces[s1], position_gains[s1] = 0.0, force, prm.lock_position_gain
         else:
-            self._drive(s1, velocity / SPREAD_COUNTS_PER_RAD, force)
+            held[s1] = False
+            target_velocities[s1], forces[s1], position_gains[s1] = velocity / SPREAD_COUNTS_PER_RAD, force, 0.0
 
     def _update_after_step(self) -> None:
         """Clutch events, preload, motor torques, heat and time, from the joint states just read."""
