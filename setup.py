@@ -1,12 +1,17 @@
 """Builds bh8-gym (the metadata is in pyproject.toml) and compiles the per-step modules with Cython.
 
-Cython compiles these Python sources as they are (annotations are not used as C types, so every
-call keeps Python's semantics and results); the compiled simulator steps about 1.3x faster with
-bit-identical trajectories (benchmarks/bench_envs.py, tests/test_compiled.py). A build without a C
-compiler skips them, and the package runs from its sources.
+Cython compiles these Python sources as they are (annotations are not taken as C types, so every
+call keeps Python's semantics and results): our work per physics step takes about 12 µs instead of
+17, with bit-identical trajectories (benchmarks/bench_envs.py, tests/test_compilation.py). A build
+without a C compiler, or without Cython (pip's --no-build-isolation), skips them, and the package
+runs from its sources.
 """
-from Cython.Build import cythonize
 from setuptools import Extension, setup
+
+try:
+    from Cython.Build import cythonize
+except ImportError:
+    cythonize = None
 
 # The modules a simulated physics step or RealTime cycle runs through.
 COMPILED_MODULES = (
@@ -21,7 +26,7 @@ COMPILED_MODULES = (
 )
 
 setup(
-    ext_modules=cythonize(
+    ext_modules=[] if cythonize is None else cythonize(
         [
             Extension(
                 name, [name.replace(".", "/") + ".py"], optional=True,
