@@ -342,6 +342,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
     parser.add_argument("--gif-episodes", type=int, default=2,
                         help="episodes rendered to the GIF in --out (0: none; default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (as `bh8 train --no-progress`; none is drawn off a terminal anyway)")
     parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
                         help="another evaluation's --out directory on the same episodes: print the paired "
                              "comparison (exact McNemar test; default: none)")
@@ -393,7 +395,8 @@ def run(args: argparse.Namespace) -> int:
 
             baseline = make_baseline(args.baseline, env)
         try:
-            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline, progress=True)
+            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
+                                   progress=not args.no_progress)
         finally:
             env.close()
         paired = None

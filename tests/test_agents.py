@@ -756,3 +756,24 @@ def test_asymmetric_critic_needs_ppo_and_no_privileged_actor():
     config["env_kwargs"]["privileged"] = True
     with pytest.raises(TrainingError, match="remove privileged"):
         Trainer(config, Path("unused"))
+
+
+def test_eval_no_progress_hides_the_episode_bar_on_a_terminal(tmp_path, monkeypatch):
+    """`bh8 eval --no-progress`, as `bh8 train --no-progress`: the bar drawn on a terminal is not drawn."""
+    import contextlib
+    import io
+
+    from bh8_gym.cli import main
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    policy = _export_untrained_reach_policy(tmp_path)
+    drawn = {}
+    for flag in ([], ["--no-progress"]):
+        err = Terminal()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            assert main(["eval", str(policy), "--episodes", "2", "--gif-episodes", "0", *flag]) == 0
+        drawn[bool(flag)] = "episodes:" in err.getvalue()
+    assert drawn == {False: True, True: False}
