@@ -393,12 +393,11 @@ class Firmware:
         origin, last, odometer = self._origin, self._last_positions, self._odometer
         drive_v, drive_f = self._drive_velocities, self._drive_fractions
         t, dt = self._physics_time, self._dt
-        channels = self._channel_list
-        for i in 0, 1, 2, 3:
+        for i, channel in enumerate(self._channel_list):
             position = positions[i]
             odometer[i] += abs(position - last[i])
             last[i] = position
-            drive_v[i], drive_f[i] = channels[i].drive(t, position - origin[i], velocities[i], dt)
+            drive_v[i], drive_f[i] = channel.drive(t, position - origin[i], velocities[i], dt)
         self._positions, self._velocities = self.plant.step_with_drives(drive_v, drive_f)
         self._steps += 1
         self._physics_time = self._time_base + self._steps * dt

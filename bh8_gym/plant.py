@@ -491,7 +491,7 @@ class HandPlant:
             p.setJointMotorControlArray(self.hand_id, self.joint_indices, p.POSITION_CONTROL, *command,
                                         self._velocity_gains, client)
             self._sent_command = tuple(map(list, command))  # copies: the state lists are updated in place
-        p.stepSimulation(client)
+        p.stepSimulation(physicsClientId=client)
         self._read_joints()
         self._update_after_step()
 
@@ -535,6 +535,13 @@ class HandPlant:
         """True if finger f's drive was pushing `load` (N·m, reflected to its joint) closing at its limit."""
         capacity = self._state.drive_capacity[f]
         return capacity > 0.0 and load >= self.params.squeeze_latch_fraction * capacity
+
+    def _drive(self, joint: int, target: float, force: float) -> None:
+        state = self._state
+        state.held[joint] = False
+        state.target_velocities[joint] = target
+        state.forces[joint] = force
+        state.position_gains[joint] = 0.0
 
     def _command_joints(self) -> None:
         """Joint targets and force limits for this step from the drives and the clutch state."""
@@ -627,25 +634,22 @@ class HandPlant:
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
         friction = prm.spread_friction_torque
-        held[s2] = False
-        target_velocities[s2], forces[s2], position_gains[s2] = 0.0, friction, 0.0
-        if not drive_on[3]:
-            held[s1] = False
-            target_velocities[s1], forces[s1], position_gains[s1] = 0.0, friction, 0.0
+        velocity = state.drive_velocity[3]
+        self._drive(s2, 0.0, friction)
+        if not state.drive_on[3]:
+            self._drive(s1, 0.0, friction)
             return
-        velocity = drive_velocity[3]
-        force = drive_fraction[3] * self._spread_capacity
+        force = state.drive_fraction[3] * self._spread_capacity
         if force < friction:
             force = friction
         spread = q[s1]
         if (velocity > 0.0 and spread >= self._spread_high_stop) or (velocity < 0.0 and spread <= self._spread_low_stop):
             # Stalled at a stop: hold the stop itself (fighting PyBullet's limit row would drift).
             state.hold_positions[s1] = state.target_positions[s1] = self._spread_high if velocity > 0.0 else self._spread_low
-            held[s1] = True
-            target_velocities[s1], forces[s1], position_gains[s1] = 0.0, force, prm.lock_position_gain
+            state.held[s1] = True
+            state.target_velocities[s1], state.forces[s1], state.position_gains[s1] = 0.0, force, prm.lock_position_gain
         else:
-            held[s1] = False
-            target_velocities[s1], forces[s1], position_gains[s1] = velocity / SPREAD_COUNTS_PER_RAD, force, 0.0
+            self._drive(s1, velocity / SPREAD_COUNTS_PER_RAD, force)
 
     def _update_after_step(self) -> None:
         """Clutch events, preload, motor torques, heat and time, from the joint states just read."""
