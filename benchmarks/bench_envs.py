@@ -35,7 +35,6 @@ import pybullet as p
 
 import bh8_gym  # noqa: F401
 from bh8_gym.cli import json_object_argument
-from bh8_gym.compilation import PURE_PYTHON_VARIABLE, compiled_modules
 from bh8_gym.motion_control import VELOCITY_SCALE, sample_period
 from bh8_gym.parameters import coefficient
 from bh8_gym.plant import (
@@ -239,8 +238,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3,
                         help="rounds per env (the ratios' spread is the machine's noise; default: %(default)s)")
     parser.add_argument("--profile", action="store_true",
-                        help=f"also print a cProfile of the step path; it sees only functions run from source, so "
-                             f"set {PURE_PYTHON_VARIABLE}=1 (default: off)")
+                        help="also print a cProfile of the step path (default: off)")
     parser.add_argument("--env-kwargs", type=json_object_argument, default={},
                         help='JSON keywords for both envs, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\' (default: none)')
     args = parser.parse_args()
@@ -268,8 +266,6 @@ def main() -> None:
               f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")
-    print(f"compiled modules: {', '.join(compiled_modules()) or 'none'} "
-          f"({PURE_PYTHON_VARIABLE}=1 runs them all from source)")
     panda = bench_panda_gym(args.steps, args.repeats)
     if panda is None:
         print("PandaReach-v3: panda-gym is not installed (pip install panda-gym) - comparison skipped")

@@ -2,11 +2,7 @@
 
 Importing the package registers the environments `BH8Grasp-v0` and `BH8FingerReach-v0`.
 """
-from bh8_gym.compilation import use_sources_where_needed as _use_sources_where_needed
-
-_use_sources_where_needed()  # before the first import of a compiled module
-
-from bh8_gym.envs import register_envs as _register_envs  # noqa: E402
+from bh8_gym.envs import register_envs as _register_envs
 
 __version__ = "0.1.0"
 
