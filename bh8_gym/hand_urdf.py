@@ -39,18 +39,31 @@ OUTER_LINK_MASS = 0.035
 TIP_FRAME_MASS = 0.001  # the fixed tip frame is a marker; PyBullet wants a non-zero mass
 PALM_MASS = TOTAL_MASS - 3 * (KNUCKLE_MASS + INNER_LINK_MASS + OUTER_LINK_MASS + TIP_FRAME_MASS)
 
-# Shape dimensions (metres). Finger width is along the inner/outer joint axes; 20 mm leaves 5 mm
-# between neighbouring fingers at full spread (their centres are Aw = 25 mm apart, Table 9).
-FINGER_WIDTH = 0.020
-FINGER_THICKNESS = 0.020  # inner link, across the link in its bending plane
-OUTER_BACK = 0.008  # outer link's back surface below the link line; its pad is at +D3
-PALM_RADIUS = 0.043  # keeps the palm clear of the knuckle joints, which sit 50-76 mm out
-KNUCKLE_START = 0.012  # knuckle housing spans x1 from here to just past the inner joint axis
-KNUCKLE_END = kin.A1 + 0.008
-KNUCKLE_BELOW = 0.010
-KNUCKLE_ABOVE = 0.012
-INNER_START = 0.008  # inner link box starts this far past its joint axis (the knuckle covers it)
+# Shape dimensions (metres). The manual gives the D-H frames (§9.5) but no outline (App. A's
+# dimension drawing is an image); these come from Barrett's CAD as published in the community
+# description `barrett_hand_description` (BH8-280/282 meshes, whose palm, knuckles and links are the
+# 262's): facts measured off the meshes, recorded in docs/SPEC.md §1.
+PALM_RADIUS = 0.0445  # palm_280/palm_282 meshes: a 89 mm disc
+# The palm face is 0.9 mm above the inner joint axes (CAD), which are at z = Dw (Table 9). §8 ("adjust
+# CT so that it is at or just beyond the actual palm surface") agrees: at the default CT (17,000 counts)
+# Equation 3 puts the pad point {T} at z = 84.4 mm, on the palm face.
+PALM_TOP = kin.DW + 0.0009
+FINGER_WIDTH = 0.021  # inner link 21 mm across (CAD); neighbours at full spread, Aw = 25 mm apart, keep 4 mm
+INNER_HALF_THICKNESS = 0.0105  # inner link about 21 mm deep in its bending plane (CAD: 20-25 mm)
+INNER_START = 0.008  # the inner link's box starts this far past its joint axis (the knuckle covers the joint)
+INNER_PAST_OUTER_JOINT = 0.0095  # the inner link reaches 9.5 mm past the outer joint axis (CAD)
+OUTER_HALF_THICKNESS = kin.D3  # the pad is the plane y3 = D3 (§9.5: {T} is on it) and the CAD link is 19 mm deep
 OUTER_START = 0.006
+TIP_RADIUS = 0.002  # rounds the pad's end, so a fingertip touching an object is not a sharp edge
+# Knuckle housings (CAD knuckle meshes), in the finger's frame {1} along its x axis, and their height
+# above the inner joint axis (= the palm face). F1/F2's turns with the spread about the axis r·Aw from
+# the palm centre and spans from 12.3 mm behind that axis to 15 mm past the inner joint; F3's frame {1}
+# is the palm centre and its fixed housing spans 35-61 mm from it. Below the palm face they are inside
+# the palm; only the part above it can touch an object.
+KNUCKLE_WIDTH = 0.0246
+SPREAD_KNUCKLE = (-0.0123, kin.A1 + 0.015, 0.015)  # (start, end along x1, top above the palm face)
+FIXED_KNUCKLE = (0.035, 0.061, 0.009)
+KNUCKLE_BELOW = 0.010  # how far the housing's box reaches below the palm face (into the palm)
 
 PALM_RGBA = (0.22, 0.23, 0.25, 1.0)
 KNUCKLE_RGBA = (0.12, 0.12, 0.13, 1.0)
@@ -72,6 +85,15 @@ JOINT_NAMES = (
     "f3_outer_joint",
 )
 TIP_LINK_NAMES = ("f1_tip", "f2_tip", "f3_tip")
+# Link pairs that never touch on the hardware, so contact between them is off (PyBullet already skips
+# a link and its parent). Each inner link leaves its knuckle housing through a slot above the palm
+# face, so it cannot meet the palm; the knuckle housings are parts of the palm, kept apart by the
+# spread's stops (at full spread they are 0.4 mm apart). Everything else touches as on the hand: outer
+# links meet the palm (§8: CT at the palm surface) and fingers meet each other (§9.6).
+NO_CONTACT_PAIRS = (
+    ("palm", "f1_inner"), ("palm", "f2_inner"), ("palm", "f3_inner"),
+    ("f1_knuckle", "f2_knuckle"), ("f1_knuckle", "f3_knuckle"), ("f2_knuckle", "f3_knuckle"),
+)
 
 
 def _fmt(value: float) -> str:
@@ -132,33 +154,39 @@ def _box(extent_min, extent_max, rgba) -> tuple[str, np.ndarray, np.ndarray]:
 
 
 def _palm_link() -> str:
-    length = kin.DW
+    length = PALM_TOP
     center = (0.0, 0.0, length / 2.0)
     body = _shape(f'<cylinder radius="{_fmt(PALM_RADIUS)}" length="{_fmt(length)}"/>', center, PALM_RGBA)
     inertia = _cylinder_inertia(PALM_MASS, PALM_RADIUS, length)
     return f'  <link name="palm">\n{_inertial(PALM_MASS, center, inertia)}{body}  </link>\n'
 
 
-def _knuckle_link(name: str) -> str:
-    half = FINGER_WIDTH / 2.0
-    shape, size, center = _box((KNUCKLE_START, -half, -KNUCKLE_BELOW), (KNUCKLE_END, half, KNUCKLE_ABOVE), KNUCKLE_RGBA)
+def _knuckle_link(name: str, spreads: bool) -> str:
+    start, end, top = SPREAD_KNUCKLE if spreads else FIXED_KNUCKLE
+    half = KNUCKLE_WIDTH / 2.0
+    shape, size, center = _box((start, -half, -KNUCKLE_BELOW), (end, half, top), KNUCKLE_RGBA)
     return f'  <link name="{name}">\n{_inertial(KNUCKLE_MASS, center, _box_inertia(KNUCKLE_MASS, size))}{shape}  </link>\n'
 
 
 def _inner_link(name: str) -> str:
-    half_w, half_t = FINGER_WIDTH / 2.0, FINGER_THICKNESS / 2.0
-    shape, size, center = _box((INNER_START, -half_t, -half_w), (kin.A2 + half_t / 2.0, half_t, half_w), LINK_RGBA)
+    half_w, half_t = FINGER_WIDTH / 2.0, INNER_HALF_THICKNESS
+    shape, size, center = _box((INNER_START, -half_t, -half_w), (kin.A2 + INNER_PAST_OUTER_JOINT, half_t, half_w), LINK_RGBA)
     return f'  <link name="{name}">\n{_inertial(INNER_LINK_MASS, center, _box_inertia(INNER_LINK_MASS, size))}{shape}  </link>\n'
 
 
 def _outer_link(name: str) -> str:
-    half_w = FINGER_WIDTH / 2.0
-    shape, size, center = _box((OUTER_START, -OUTER_BACK, -half_w), (kin.A3, kin.D3, half_w), LINK_RGBA)
-    # A rounded fingertip: a cylinder across the finger at the end of the link, as thick as the link.
-    tip_radius = (kin.D3 + OUTER_BACK) / 2.0
-    tip_center = (kin.A3, (kin.D3 - OUTER_BACK) / 2.0, 0.0)
-    tip = _shape(f'<cylinder radius="{_fmt(tip_radius)}" length="{_fmt(FINGER_WIDTH)}"/>', tip_center, TIP_RGBA)
-    return f'  <link name="{name}">\n{_inertial(OUTER_LINK_MASS, center, _box_inertia(OUTER_LINK_MASS, size))}{shape}{tip}  </link>\n'
+    """The outer link from its joint to the D-H tip: the pad is the plane y3 = D3, the link ends at
+    x3 = A3, and the corner between them, where {T} is (§9.5), is rounded with TIP_RADIUS. So at the
+    default CT the pad meets the palm face (§8), and the link is as deep as the CAD's (2 x D3)."""
+    half_w, r = FINGER_WIDTH / 2.0, TIP_RADIUS
+    back = -OUTER_HALF_THICKNESS
+    body, size, center = _box((OUTER_START, back, -half_w), (kin.A3, kin.D3 - r, half_w), LINK_RGBA)
+    pad, _, _ = _box((OUTER_START, kin.D3 - r, -half_w), (kin.A3 - r, kin.D3, half_w), LINK_RGBA)
+    tip = _shape(f'<cylinder radius="{_fmt(r)}" length="{_fmt(FINGER_WIDTH)}"/>', (kin.A3 - r, kin.D3 - r, 0.0), TIP_RGBA)
+    full = np.array([kin.A3 - OUTER_START, kin.D3 - back, FINGER_WIDTH])
+    middle = np.array([(OUTER_START + kin.A3) / 2.0, (kin.D3 + back) / 2.0, 0.0])
+    inertia = _inertial(OUTER_LINK_MASS, middle, _box_inertia(OUTER_LINK_MASS, full))
+    return f'  <link name="{name}">\n{inertia}{body}{pad}{tip}  </link>\n'
 
 
 def _tip_link(name: str) -> str:
@@ -191,7 +219,7 @@ def generate_urdf() -> str:
         rows = kin.dh_rows(finger, 0.0, 0.0, 0.0)
         # Joint 1: theta = r·Θk1 - (π/2)·j, so a fixed offset of -(π/2)·j and an axis of r·z.
         knuckle_transform = kin.dh_transform(*rows[0])
-        parts.append(_knuckle_link(f"{prefix}_knuckle"))
+        parts.append(_knuckle_link(f"{prefix}_knuckle", kin.FINGER_R[finger] != 0))
         if kin.FINGER_R[finger] == 0:
             parts.append(_joint(f"{prefix}_knuckle_fixed", "fixed", "palm", f"{prefix}_knuckle", knuckle_transform))
         else:

@@ -1,0 +1,209 @@
+"""How firmly the simulated hand holds what it grasps (manual §9.3.1: worm drives do not back-drive;
+App. B FAQ A1: the grasp stays with the motor current removed).
+
+Per trial: a palm-down hand at the defaults (HI, HOLD 0 on the fingers) over an object standing on
+the table, the palm face 15 mm above the object's top (at least 115 mm above the table, as the grasp
+env places it), placed with the env's arm error (±2 cm, ±15° yaw); `GC`; the arm lifts the hand
+10 cm in 0.7 s (minimum jerk) and holds it still for 5 s (`--shake`: shaken ±1 cm at 2 Hz instead).
+For each shape: cylinders, boxes, spheres and capsules of three sizes spanning the env's graspable
+range, masses and frictions drawn from its ranges, 15 placements per size (45 trials per shape).
+
+Printed per shape:
+* closed: grasps whose fingers all touch the object when GC ends;
+* kept: of those, the object still in the hand after the hold (within 3 cm of where the lift left it,
+  and off the table);
+* squeeze kept: of those kept, every finger's strain-gauge load still above 5 counts and at least half
+  of its load when GC ended;
+* slip and rotation of the object in the wrist frame from the end of the lift to the end of the hold
+  (median and max, over the closed grasps that kept it);
+* GC time after the last finger's first contact (median, max): §5.5 stall termination says TSTOP.
+
+Run: python benchmarks/bench_hold.py [--shapes cylinder box] [--placements 15] [--shake] [--jobs 2]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from bh8_gym.firmware import Firmware
+from bh8_gym.kinematics import DW
+from bh8_gym.plant import HandPlant, PlantParameters
+
+PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
+SHAPES = ("cylinder", "box", "sphere", "capsule")
+SIZES = (0.04, 0.06, 0.08)  # m: diameter or side, across the env's 3-9 cm primitives
+HEIGHT = 0.09  # m: standing cylinders, boxes and capsules (the env's largest extent)
+MASS_RANGE = (0.05, 0.40)  # kg (envs.objects.PrimitiveRanges)
+FRICTION_RANGE = (0.4, 1.2)
+POSITION_ERROR = 0.02  # m, envs.scenes.PlacementRanges
+YAW_ERROR = math.radians(15.0)
+CLEARANCE = 0.015  # m between the palm face and the object's top
+MIN_PALM_ABOVE_TABLE = 0.115
+LIFT_HEIGHT, LIFT_SECONDS, HOLD_SECONDS = 0.10, 0.7, 5.0
+SHAKE_AMPLITUDE, SHAKE_HZ = 0.01, 2.0
+GC_LIMIT_S = 30.0
+KEPT_DISTANCE = 0.03  # m: further than this from the lifted pose, the object was lost
+KEPT_LOAD = 5  # strain-gauge counts above the no-load offset
+
+
+@dataclass(frozen=True)
+class Trial:
+    shape: str
+    size: float
+    mass: float
+    friction: float
+    offset: tuple[float, float]
+    yaw: float
+    shake: bool = False
+
+
+def trials(shapes, placements: int, shake: bool, seed: int = 0) -> list[Trial]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for shape in shapes:
+        for size in SIZES:
+            for _ in range(placements):
+                offset = tuple(float(v) for v in rng.uniform(-POSITION_ERROR, POSITION_ERROR, 2))
+                out.append(Trial(shape, size, float(rng.uniform(*MASS_RANGE)), float(rng.uniform(*FRICTION_RANGE)),
+                                 offset, float(rng.uniform(-YAW_ERROR, YAW_ERROR)), shake))
+    return out
+
+
+def _object(plant: HandPlant, trial: Trial) -> tuple[int, float]:
+    """The object standing on the table under the palm; returns (body, height)."""
+    shape, size = trial.shape, trial.size
+    if shape == "box":
+        kind, dims, height = "box", (size, size, HEIGHT), HEIGHT
+    elif shape == "cylinder":
+        kind, dims, height = "cylinder", (size / 2, HEIGHT), HEIGHT
+    elif shape == "sphere":
+        kind, dims, height = "sphere", (size / 2,), size
+    else:
+        kind, dims, height = "capsule", (size / 2, max(HEIGHT - size, 1e-3)), max(HEIGHT, size + 1e-3)
+    yaw = (0.0, 0.0, math.sin(trial.yaw / 2), math.cos(trial.yaw / 2))
+    body = plant.add_object(kind, dims, position=(trial.offset[0], trial.offset[1], height / 2 + 1e-4),
+                            orientation=yaw, mass=trial.mass, friction=trial.friction)
+    return body, height
+
+
+def _relative_pose(plant: HandPlant, body: int):
+    wrist_position, wrist_orientation = plant.wrist_pose()
+    position, orientation = plant.object_pose(body)
+    inverse = p.invertTransform(wrist_position.tolist(), wrist_orientation.tolist())
+    relative = p.multiplyTransforms(inverse[0], inverse[1], position.tolist(), orientation.tolist())
+    return np.array(relative[0]), np.array(relative[1])
+
+
+def run_trial(trial: Trial, params: PlantParameters | None = None) -> dict:
+    plant = HandPlant(params or PlantParameters(), seed=0)
+    with tempfile.TemporaryDirectory() as store:
+        fw = Firmware(plant=plant, store_dir=store, seed=0)
+        try:
+            return _grasp_lift_hold(fw, plant, trial)
+        finally:
+            fw.shutdown()
+            plant.close()
+
+
+def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
+    dt = plant.dt
+    # The hand is initialised high above the table, then the arm brings it over the object.
+    fw.transact(b"HI\r")
+    fw.transact(b"GFSET HOLD 0\r")
+    body, height = _object(plant, trial)
+    wrist_z = max(height + CLEARANCE, MIN_PALM_ABOVE_TABLE) + DW
+    plant.set_wrist_pose((0.0, 0.0, wrist_z), PALM_DOWN, teleport=True)
+    fw.run_for(0.1)  # the object settles
+    fingers = {plant._link_index_by_name[f"f{f}_{part}"]: f - 1 for f in (1, 2, 3) for part in ("inner", "outer")}
+    first_contact = [None, None, None]
+    fw.write(b"GC\r")
+    start = fw.time
+    while not fw.idle:
+        if fw.time - start > GC_LIMIT_S:
+            fw.write(b"\x03")
+            fw.run_until_idle()
+            break
+        fw.run_for(dt)
+        for contact in p.getContactPoints(bodyA=plant.hand_id, bodyB=body, physicsClientId=plant.client):
+            finger = fingers.get(contact[3])
+            if finger is not None and first_contact[finger] is None:
+                first_contact[finger] = fw.time - start
+    fw.read()
+    gc_seconds = fw.time - start
+    gc_loads = plant.strain_gauges()[:3] - np.array(plant.strain_offsets)
+    touching = {fingers[c[3]] for c in p.getContactPoints(bodyA=plant.hand_id, bodyB=body, physicsClientId=plant.client)
+                if c[3] in fingers}
+    closed = len(touching) == 3
+    steps = round(LIFT_SECONDS / dt)
+    for k in range(1, steps + 1):
+        s = k / steps
+        plant.set_wrist_pose((0.0, 0.0, wrist_z + LIFT_HEIGHT * s ** 3 * (10 - 15 * s + 6 * s * s)), PALM_DOWN)
+        fw.run_for(dt)
+    lifted_position, lifted_orientation = _relative_pose(plant, body)
+    for k in range(round(HOLD_SECONDS / dt)):
+        if trial.shake:
+            x = SHAKE_AMPLITUDE * math.sin(2 * math.pi * SHAKE_HZ * k * dt)
+            plant.set_wrist_pose((x, 0.0, wrist_z + LIFT_HEIGHT), PALM_DOWN)
+        fw.run_for(dt)
+    position, orientation = _relative_pose(plant, body)
+    slip = float(np.linalg.norm(position - lifted_position))
+    turn = p.getDifferenceQuaternion(lifted_orientation.tolist(), orientation.tolist())
+    rotation = math.degrees(2.0 * math.acos(min(1.0, abs(turn[3]))))
+    loads = plant.strain_gauges()[:3] - np.array(plant.strain_offsets)
+    kept = slip < KEPT_DISTANCE and float(plant.object_pose(body)[0][2]) > LIFT_HEIGHT / 2
+    squeezed = bool(np.all(loads > KEPT_LOAD) and np.all(loads >= 0.5 * gc_loads))
+    last_contact = max(first_contact) if None not in first_contact else None
+    return dict(closed=closed, kept=kept, squeezed=squeezed, slip_mm=slip * 1000.0, rotation_deg=rotation, gc_s=gc_seconds,
+                after_contact_s=None if last_contact is None else gc_seconds - last_contact,
+                gc_loads=gc_loads.tolist(), loads=loads.tolist())
+
+
+def summarize(shape: str, results: list[dict]) -> str:
+    closed = [r for r in results if r["closed"]]
+    kept = [r for r in closed if r["kept"]]
+    slip = np.array([r["slip_mm"] for r in kept]) if kept else np.array([np.nan])
+    rotation = np.array([r["rotation_deg"] for r in kept]) if kept else np.array([np.nan])
+    after = np.array([r["after_contact_s"] for r in results if r["after_contact_s"] is not None] or [np.nan])
+    kept_share = 100.0 * len(kept) / len(closed) if closed else float("nan")
+    squeezed = sum(r["squeezed"] for r in kept)
+    return (f"{shape:9s} {len(closed):3d}/{len(results):<3d} {len(kept):3d} ({kept_share:5.1f} %)  {squeezed:3d}       "
+            f"{np.median(slip):6.2f} {np.max(slip):7.2f}   {np.median(rotation):6.2f} {np.max(rotation):7.2f}   "
+            f"{np.median(after):5.2f} {np.max(after):5.2f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--shapes", nargs="+", choices=SHAPES, default=list(SHAPES), help="default: all four")
+    parser.add_argument("--placements", type=int, default=15, help="placements per shape and size (default: %(default)s)")
+    parser.add_argument("--shake", action="store_true", help="shake the lifted hand ±1 cm at 2 Hz during the hold")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the placements, masses and frictions (default: %(default)s)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default: %(default)s)")
+    parser.add_argument("--verbose", action="store_true", help="print every trial")
+    args = parser.parse_args()
+    todo = trials(args.shapes, args.placements, args.shake, args.seed)
+    started = time.perf_counter()
+    with ProcessPoolExecutor(args.jobs) as pool:
+        results = list(pool.map(run_trial, todo, chunksize=4))
+    if args.verbose:
+        for trial, result in zip(todo, results):
+            print(trial, {k: (round(v, 3) if isinstance(v, float) else v) for k, v in result.items()})
+    print(f"{'hold' if not args.shake else 'shaken hold'} {HOLD_SECONDS:g} s after a {LIFT_HEIGHT * 100:g} cm lift; "
+          f"{args.placements} placements x {len(SIZES)} sizes per shape, seed {args.seed}")
+    print("shape     closed  kept (of closed)  squeezed  slip mm: median max  rotation deg: median max  GC after last contact s: median max")
+    for shape in args.shapes:
+        print(summarize(shape, [r for t, r in zip(todo, results) if t.shape == shape]))
+    closed = [r for r in results if r["closed"]]
+    kept = [r for r in closed if r["kept"]]
+    print(f"all       {len(closed)}/{len(results)} closed, {len(kept)} kept ({100.0 * len(kept) / max(len(closed), 1):.1f} %); "
+          f"{time.perf_counter() - started:.0f} s wall")
+
+
+if __name__ == "__main__":
+    main()
