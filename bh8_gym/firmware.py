@@ -715,6 +715,8 @@ class Firmware:
                     else:
                         # the stop reads -IOFF from now on (§5.3.4 IOFF), then home to 0
                         self._origin[m - 1] += position + v["IOFF"]
+                        if m != SPREAD:
+                            self.plant.back_off_stop(m, v["IOFF"])
                         run.kind = _RUN_HI_HOME
                         run.target = 0.0
                         self._start_move(channel, v, t, -float(v["IOFF"]), 0.0)

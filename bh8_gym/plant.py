@@ -56,7 +56,12 @@ INNER_INDEX = (1, 4, 6)  # positions of the finger joints in the 8-joint arrays
 OUTER_INDEX = (2, 5, 7)
 SPREAD_INDEX = (0, 3)
 FINGER_JOINTS = ((0, 1, 2), (1, 4, 5), (2, 6, 7))  # (finger index, inner joint, outer joint)
+WORM_JOINTS = (1, 2, 4, 5, 6, 7)  # the finger joints, each behind a worm
 _THIRD = 1.0 / 3.0
+_IDLE_FORCE = 1e-9  # N·m: a joint motor that must not push (PyBullet skips a motor of force 0 and keeps
+#   reporting its last torque)
+_JOINT_RANGE_LOW = (kin.SPREAD_RANGE[0], kin.INNER_RANGE[0], kin.OUTER_RANGE[0]) * 2 + (kin.INNER_RANGE[0], kin.OUTER_RANGE[0])
+_JOINT_RANGE_HIGH = (kin.SPREAD_RANGE[1], kin.INNER_RANGE[1], kin.OUTER_RANGE[1]) * 2 + (kin.INNER_RANGE[1], kin.OUTER_RANGE[1])
 
 _DEG = math.pi / 180.0
 INNER_COUNTS_PER_RAD = kin.INNER_COUNTS_PER_DEG_262 / _DEG
@@ -115,11 +120,17 @@ class PlantParameters:
     # which rigid PyBullet contacts do not resolve. 6.5 % keeps a fingertip pressing (§5.5 HSG) after the
     # inner link touched first, yet leaves the inner enough torque to break away (§9.3.1).
     coupled_torque_floor: float = 0.065
-    lock_position_gain: float = 0.2  # PyBullet position gain that pins a locked joint (no drift)
-    backdrive_speed: float = 1e-3  # rad/s against the drive that counts as being back-driven
-    # A worm is not back-drivable in either sense: a load helping the motion cannot make the joint run
-    # faster than the motor turns it. A joint within this fraction of its target speed (or faster) is
-    # braked at its target speed unless its motor has to push at its limit.
+    lock_position_gain: float = 0.2  # PyBullet position gain that holds the spread at a stop it is driven into
+    # A worm is not back-drivable: a load cannot turn a finger joint against its drive, nor turn an
+    # unpowered one at all. Each finger joint has a window it may not leave (PyBullet joint limits, hard
+    # as the worm's teeth): a driven joint cannot go back more than this behind the furthest position
+    # its drive has reached; a joint without drive stays within this of where it stopped. The slack is
+    # the drive train's compliance (gear backlash, cable and link elasticity), and it keeps the limits
+    # out of the solver until a load actually pushes against the worm.
+    worm_slack: float = 0.15 * _DEG
+    # Nor can a load helping the motion make a finger joint run faster than the motor turns it. A joint
+    # within this fraction of its target speed (or faster) is braked at its target speed unless its
+    # motor has to push at its limit.
     overrun_tolerance: float = 0.02
     # N·m at a joint available to brake an overrunning joint. Physically the worm's lock torque, but a
     # PyBullet motor's limit is symmetric: the brake also pushes forward until the next step notices a
@@ -138,15 +149,26 @@ class PlantParameters:
     # TorqueSwitch (SPEC §8: our choice, documented in the module docstring).
     breakaway_base_torque: float = 0.25  # N·m at the inner joint with no preload (10 % of full motor torque)
     breakaway_preload_slope: float = 1.0  # §9.3.1: loosening torque equals tightening torque (screw)
-    rotor_impact_gain: float = 0.25  # N·m per rad/s of inner-link speed lost at impact: motor inertia
-    #   reflected through 125:1 against the drive's compliance. Chosen so default HI (IVEL 300) then
-    #   C at MCV 100 breaks away on an obstacle while MCV <= 40 does not (manual §8 troubleshooting).
+    # N·m per rad/s of inner-link speed lost at impact: the rotor's inertia reflected through 125:1
+    # against the drive's compliance (a 1e-6 kg·m² rotor, 125², 50 N·m/rad: about 0.9). With
+    # preload_limit it puts the breakaway of a C against a blocked inner link, after a default HI, at
+    # MCV 37.5: from MCV 40 up it breaks away, at 35 it does not (manual §8 troubleshooting: "The close
+    # velocity is too slow. Increase the close velocity greater than or equal to 40").
+    rotor_impact_gain: float = 1.0
     impact_memory_time: float = 0.02  # s: how long a stopped link's speed counts as an impact
     stop_tolerance: float = 0.05 * _DEG  # rad: a joint this close to its limit is against its stop
-    initial_preload: float = 2.8  # N·m: the hand starts as if a default HI had preloaded the clutches
+    initial_preload: float = 2.99  # N·m: the hand starts as a default HI leaves it (0.9 x preload_limit)
+    # §5.3.4 IOFF: "Larger values result in less compression of the Belleville washer ... its true range
+    # of useful values is from 0 to approximately 500". Backing off the open stop (HI's move to 0 closes
+    # IOFF counts) unwinds the preload linearly over this many counts (`back_off_stop`).
+    preload_release_counts: float = 500.0
+    # N·m: the most the Belleville washers take. Their force is nearly flat over their working travel
+    # (the reason for Belleville springs), so slamming the finger open harder than HI does (IVEL 300)
+    # preloads no more.
+    preload_limit: float = 3.32
 
     # Strain gauges (§9.4, SPEC §1).
-    strain_gain: float = 127.5  # counts per N·m about the outer joint: about ±1 N·m over 8 bits
+    strain_gain: float = 100.0  # counts per N·m about the outer joint: Figure 28 plots ΔSG -100..100 over -1..1 N·m
     strain_offsets: tuple[int, int, int] | None = None  # no-load values; None: seeded in 100..140
 
     # Thermal (§2: the hand runs at 40-60 °C).
@@ -161,6 +183,14 @@ class PlantParameters:
     palm_friction: float = 0.6
     table_friction: float = 0.6
     object_friction: float = 0.7  # default for add_object
+    # Static friction that holds: PyBullet's friction anchors keep a sticking contact's anchor point, so
+    # a held object does not creep through solver error (without them a worm-locked grasp slipped 9 mm
+    # and turned 33° in 5 s).
+    friction_anchors: bool = True
+    # m: PyBullet's torsional friction (torque per newton of normal force) of the finger links' contacts.
+    # The pads are rubber-faced areas, not points: a patch of about 4 mm radius at friction 0.8 resists
+    # 2/3 x 0.8 x 0.004 N·m per N, so a pinched object does not spin about the line between contacts.
+    finger_spinning_friction: float = 0.002
     link_mass_scale: float = 1.0  # scales every hand link's mass (randomisation)
 
     # World.
@@ -186,6 +216,10 @@ class PlantParameters:
             raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
         if self.solver_iterations < 1:
             raise PlantError(f"solver_iterations must be at least 1, got {self.solver_iterations!r}")
+        if not self.preload_release_counts > 0.0:
+            raise PlantError(f"preload_release_counts must be > 0, got {self.preload_release_counts!r}")
+        if not self.worm_slack >= 0.0:
+            raise PlantError(f"worm_slack must be >= 0, got {self.worm_slack!r}")
 
 
 def dataclass_from(cls, value, keyword: str):
@@ -238,7 +272,7 @@ class _PlantState:
     drive_fraction: list = field(default_factory=lambda: [0.0] * 4)
     drive_on: list = field(default_factory=lambda: [False] * 4)
     engaged: list = field(default_factory=lambda: [True] * 3)
-    locked: list = field(default_factory=lambda: [True] * 3)  # worm holding (no motion)
+    locked: list = field(default_factory=lambda: [True] * 3)  # unpowered: the worm holds the finger
     breakaway_counts: list = field(default_factory=lambda: [None] * 3)
     preload: list = field(default_factory=lambda: [0.0] * 3)  # N·m, set from params at construction
     closing_peak: list = field(default_factory=lambda: [0.0] * 3)  # rad/s, decaying
@@ -247,12 +281,16 @@ class _PlantState:
     positions: tuple = (0.0,) * NUM_JOINTS
     previous_positions: tuple = (0.0,) * NUM_JOINTS
     velocities: tuple = (0.0,) * NUM_JOINTS
-    torques: tuple = (0.0,) * NUM_JOINTS
+    torques: tuple = (0.0,) * NUM_JOINTS  # what each joint motor applied
+    outer_loads: tuple = (0.0,) * 3  # torque each outer joint transmits (motor and worm), + = against closing
     motor_torques: list = field(default_factory=lambda: [0.0] * 4)
     hold_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # where locked joints are held
     held: list = field(default_factory=lambda: [False] * NUM_JOINTS)
     latched_torque: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # N·m a locked joint keeps pressing
     drive_capacity: list = field(default_factory=lambda: [0.0] * 3)  # N·m of last step's drive, + closing, 0 held
+    # Where each finger joint may be (PyBullet joint limits): the worm's teeth (see PlantParameters.worm_slack).
+    window_low: list = field(default_factory=lambda: list(_JOINT_RANGE_LOW))
+    window_high: list = field(default_factory=lambda: list(_JOINT_RANGE_HIGH))
     # The joint motor commands of the last step (the next step's decisions depend on them).
     target_positions: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
     target_velocities: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)
@@ -294,14 +332,19 @@ class HandPlant:
         p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations, deterministicOverlappingPairs=1, physicsClientId=cid)
         self.table_id = self._make_table() if prm.table else None
         position, orientation = tuple(prm.wrist_position), tuple(prm.wrist_orientation)
-        flags = p.URDF_USE_SELF_COLLISION | p.URDF_USE_SELF_COLLISION_EXCLUDE_ALL_PARENTS | p.URDF_USE_INERTIA_FROM_FILE
+        # Implicit cylinders: URDF cylinders otherwise load as polygonal hulls, whose facets make a
+        # rolling contact (palm face, fingertips) jump.
+        flags = p.URDF_USE_SELF_COLLISION | p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER
         self.hand_id = p.loadURDF(str(hand_urdf.cached_urdf_path()), position, orientation, flags=flags, physicsClientId=cid)
         self._joint_index_by_name = {}
-        self._link_index_by_name = {}
+        self._link_index_by_name = {"palm": -1}
         for index in range(p.getNumJoints(self.hand_id, physicsClientId=cid)):
             info = p.getJointInfo(self.hand_id, index, physicsClientId=cid)
             self._joint_index_by_name[info[1].decode()] = index
             self._link_index_by_name[info[12].decode()] = index
+        for first, second in hand_urdf.NO_CONTACT_PAIRS:
+            p.setCollisionFilterPair(self.hand_id, self.hand_id, self._link_index_by_name[first],
+                                     self._link_index_by_name[second], 0, physicsClientId=cid)
         self.joint_names = hand_urdf.JOINT_NAMES
         self.joint_indices = [self._joint_index_by_name[name] for name in self.joint_names]
         self.tip_link_indices = [self._link_index_by_name[name] for name in hand_urdf.TIP_LINK_NAMES]
@@ -309,6 +352,10 @@ class HandPlant:
         all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
         p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)
         self._links = [-1] + all_joints
+        # The strain gauges measure the torque the outer joints transmit (§9.4), motor and worm together.
+        for outer in OUTER_INDEX:
+            p.enableJointForceTorqueSensor(self.hand_id, self.joint_indices[outer], True, physicsClientId=cid)
+        self._sent_windows = {}  # joint -> (low, high) last sent to PyBullet
         self._unit_masses = [p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)[0] for link in self._links]
         self._com_offset = p.getDynamicsInfo(self.hand_id, -1, physicsClientId=cid)[3]
         # F1 and F2 spread through one motor: a gear constraint keeps their angles equal.
@@ -332,6 +379,8 @@ class HandPlant:
             preload=[float(prm.initial_preload)] * 3,
         )
         self._read_joints()
+        for joint in WORM_JOINTS:  # unpowered: the worms hold the fingers where they are
+            self._hold(joint)
 
     def _apply_parameters(self) -> None:
         """Push `self.params` into PyBullet and derive the per-step constants (plain floats)."""
@@ -340,7 +389,9 @@ class HandPlant:
         p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations, physicsClientId=cid)
         for link, unit_mass in zip(self._links, self._unit_masses):
             friction = prm.palm_friction if link == -1 else prm.finger_friction
-            p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * prm.link_mass_scale, physicsClientId=cid)
+            spinning = 0.0 if link == -1 else prm.finger_spinning_friction
+            p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * prm.link_mass_scale,
+                             spinningFriction=spinning, frictionAnchor=int(prm.friction_anchors), physicsClientId=cid)
         if self.table_id is not None:
             p.changeDynamics(self.table_id, -1, lateralFriction=prm.table_friction, physicsClientId=cid)
         p.changeConstraint(self._spread_gear, gearRatio=-1.0, maxForce=prm.worm_lock_torque, erp=0.2, physicsClientId=cid)
@@ -361,8 +412,8 @@ class HandPlant:
         self._inner_open, self._inner_closed = kin.INNER_RANGE[0] + stop, kin.INNER_RANGE[1] - stop
         self._outer_open, self._outer_closed = kin.OUTER_RANGE[0] + stop, kin.OUTER_RANGE[1] - stop
         self._spread_low, self._spread_high = kin.SPREAD_RANGE
-        self._joint_low = [kin.SPREAD_RANGE[0], kin.INNER_RANGE[0], kin.OUTER_RANGE[0]] * 2 + [kin.INNER_RANGE[0], kin.OUTER_RANGE[0]]
-        self._joint_high = [kin.SPREAD_RANGE[1], kin.INNER_RANGE[1], kin.OUTER_RANGE[1]] * 2 + [kin.INNER_RANGE[1], kin.OUTER_RANGE[1]]
+        self._joint_low, self._joint_high = _JOINT_RANGE_LOW, _JOINT_RANGE_HIGH
+        self._slack = prm.worm_slack
         self._spread_low_stop, self._spread_high_stop = self._spread_low + stop, self._spread_high - stop
         self._brake_torque = prm.overrun_brake_torque
         self._speed_limit = prm.motor_no_load_speed
@@ -484,52 +535,58 @@ class HandPlant:
         client = self._client
         command = (state.target_positions, state.target_velocities, state.forces, state.position_gains)
         if command != self._sent_command:
-            # POSITION_CONTROL with position gain 0 is a pure velocity motor; locked joints get a gain
-            # so the worm holds its position (a velocity-only lock drifts with PyBullet's solver).
+            # POSITION_CONTROL with position gain 0 is a pure velocity motor (the spread driven into a
+            # stop gets a gain to hold the stop).
             # Positional arguments (targetPositions, targetVelocities, forces, positionGains,
             # velocityGains, physicsClientId): PyBullet parses keywords 0.4 µs slower, every step.
             p.setJointMotorControlArray(self.hand_id, self.joint_indices, p.POSITION_CONTROL, *command,
                                         self._velocity_gains, client)
             self._sent_command = tuple(map(list, command))  # copies: the state lists are updated in place
+        sent, low, high = self._sent_windows, state.window_low, state.window_high
+        for joint in WORM_JOINTS:
+            window = (low[joint], high[joint])
+            if sent.get(joint) != window:
+                p.changeDynamics(self.hand_id, self.joint_indices[joint], jointLowerLimit=window[0],
+                                 jointUpperLimit=window[1], physicsClientId=client)
+                sent[joint] = window
         p.stepSimulation(physicsClientId=client)
         self._read_joints()
         self._update_after_step()
 
     def _read_joints(self) -> None:
-        """Joint positions, velocities and applied torques (tuples, replaced whole, never mutated)."""
+        """Joint positions, velocities, applied torques and the outer joints' transmitted torques."""
         state = self._state
         joints = p.getJointStates(self.hand_id, self.joint_indices, self._client)  # (body, joints, physicsClientId)
         state.previous_positions = state.positions
-        state.positions, state.velocities, _, state.torques = zip(*joints)
+        state.positions, state.velocities, reactions, state.torques = zip(*joints)
+        # The sensor gives the load the joint carries about its axis (z); a load against closing is +.
+        state.outer_loads = (-reactions[2][5], -reactions[5][5], -reactions[7][5])
 
-    def _hold(self, joint: int, backdriven: bool = False, latch: float = 0.0) -> None:
-        """Lock `joint` (worm self-locking) where it is now, or where it was already held.
+    def _hold(self, joint: int, latch: float = 0.0) -> None:
+        """Lock `joint` (worm self-locking) where it is now, if it is not held already.
 
-        A joint found back-driven is held where it was before that step: the worm never let it move.
-        A joint newly locked with a `latch` torque (its drive was pushing a load closing) keeps
-        pressing with it (the elastic wind-up of link and cable), at most `lock_elastic_travel` beyond
-        the hold position; it never opens past the hold position.
+        A joint locked with a `latch` torque (its drive was pushing a load closing) keeps pressing with
+        it (the elastic wind-up of link and cable), at most `lock_elastic_travel` beyond the hold
+        position; it never opens more than the worm's slack below it.
         """
         state, prm = self._state, self.params
-        hold = state.hold_positions
-        if not state.held[joint]:
-            state.held[joint] = True
-            position = state.previous_positions[joint] if backdriven else state.positions[joint]
-            # Within the joint's range: a link bouncing past a stop (PyBullet's soft limit) is held at it.
-            low, high = self._joint_low[joint], self._joint_high[joint]
-            hold[joint] = low if position < low else (high if position > high else position)
-            state.latched_torque[joint] = latch
-        latched = state.latched_torque[joint]
-        state.target_velocities[joint] = 0.0
-        state.position_gains[joint] = prm.lock_position_gain
-        # Press unless the joint was pushed back past its hold position or a load larger than the
-        # latched torque pushes it open: then the worm alone holds it.
-        if latched > 0.0 and state.positions[joint] >= hold[joint] and state.torques[joint] <= 1.05 * latched:
-            state.target_positions[joint] = hold[joint] + prm.lock_elastic_travel
-            state.forces[joint] = latched
+        if state.held[joint]:
+            return
+        state.held[joint] = True
+        position = state.positions[joint]
+        # Within the joint's range: a link bouncing past a stop (PyBullet's soft limit) is held at it.
+        low, high = self._joint_low[joint], self._joint_high[joint]
+        position = low if position < low else (high if position > high else position)
+        state.hold_positions[joint] = state.target_positions[joint] = position
+        state.latched_torque[joint] = latch
+        state.position_gains[joint] = 0.0
+        below, above = position - self._slack, position + (prm.lock_elastic_travel if latch > 0.0 else self._slack)
+        state.window_low[joint] = below if below > low else low
+        state.window_high[joint] = above if above < high else high
+        if latch > 0.0:
+            state.target_velocities[joint], state.forces[joint] = prm.lock_elastic_travel / self.dt, latch
         else:
-            state.target_positions[joint] = hold[joint]
-            state.forces[joint] = prm.worm_lock_torque
+            state.target_velocities[joint], state.forces[joint] = 0.0, _IDLE_FORCE
 
     def _squeeze(self, f: int, load: float) -> bool:
         """True if finger f's drive was pushing `load` (N·m, reflected to its joint) closing at its limit."""
@@ -543,94 +600,94 @@ class HandPlant:
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
 
+    def _drive_worm(self, joint: int, target: float, force: float, sign: float) -> None:
+        """Drive a finger joint through its worm at `target` rad/s (`sign`: + closes) with at most `force`.
+
+        The worm lets it move only in the drive's direction: its window's back edge follows the
+        furthest position reached (lazily, within two `worm_slack`), its front edge is the joint's stop.
+        A load helping the motion cannot make it run faster than `target` (the brake), and the motor's
+        speed is capped at what ends the step at the stop (PyBullet enforces a limit only once the joint
+        is at it, so a fast joint would otherwise overshoot it).
+        """
+        state = self._state
+        state.held[joint] = False
+        position = state.positions[joint]
+        velocity = state.velocities[joint]
+        slack, low, high = self._slack, self._joint_low[joint], self._joint_high[joint]
+        forward = sign * target
+        if forward > 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
+                and sign * state.torques[joint] < force and self._brake_torque > force:
+            force = self._brake_torque
+        if sign > 0.0:
+            back = position - slack
+            if back - state.window_low[joint] > slack or state.window_high[joint] != high:
+                state.window_low[joint], state.window_high[joint] = (back if back > low else low), high
+            reach = (high - position) / self.dt
+            target = target if target < reach else reach
+        else:
+            back = position + slack
+            if state.window_high[joint] - back > slack or state.window_low[joint] != low:
+                state.window_low[joint], state.window_high[joint] = low, (back if back < high else high)
+            reach = (low - position) / self.dt
+            target = target if target > reach else reach
+        state.target_velocities[joint] = target
+        state.forces[joint] = force
+        state.position_gains[joint] = 0.0
+
     def _command_joints(self) -> None:
-        """Joint targets and force limits for this step from the drives and the clutch state."""
+        """Joint targets, force limits and worm windows for this step from the drives and the clutch."""
         prm, state = self.params, self._state
-        q, w, tau = state.positions, state.velocities, state.torques
+        q, tau = state.positions, state.torques
         inner_open, inner_closed = self._inner_open, self._inner_closed
         outer_open, outer_closed = self._outer_open, self._outer_closed
-        held, latched = state.held, state.latched_torque
-        hold = self._hold
-        target_velocities, forces, position_gains = state.target_velocities, state.forces, state.position_gains
-        brake, overrun = self._brake_torque, self._overrun_speed_fraction
-
-        def worm(joint: int, target: float, force: float, sign: float, speed: float, torque: float) -> None:
-            """Drive a finger joint through its worm: a load cannot make it run faster than `target`.
-
-            A joint at (or above) its target speed whose motor was not pushing at its torque limit
-            may get its next push from a load helping it along, so it is braked at the target speed
-            (`overrun_brake_torque`); a motor found pushing at its limit gets its own torque back.
-            """
-            forward = sign * target
-            if forward > 0.0 and sign * speed >= forward * overrun and sign * torque < force and brake > force:
-                force = brake
-            held[joint] = False
-            target_velocities[joint] = target
-            forces[joint] = force
-            position_gains[joint] = 0.0
-
+        hold, drive_worm = self._hold, self._drive_worm
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         locked_fingers, engaged, drive_capacity = state.locked, state.engaged, state.drive_capacity
         for f, i2, i3 in FINGER_JOINTS:
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
-            on = drive_on[f] and velocity != 0.0 and fraction > 0.0
-            if not on and held[i2] and held[i3] and not latched[i2] and not latched[i3]:
-                # Unpowered, locked, nothing pressing: last step's hold command stands.
-                locked_fingers[f] = True
-                drive_capacity[f] = 0.0
+            if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
+                if not locked_fingers[f]:
+                    # The motor stops: the worms hold the finger where it is; a drive that was pushing
+                    # a load closing leaves it wound up against that load.
+                    locked_fingers[f] = True
+                    t2, t3 = tau[i2], tau[i3]
+                    squeeze = self._squeeze(f, t2 + t3 / 3.0 if engaged[f] else t3)
+                    hold(i2, t2 if squeeze and t2 > 0.0 and engaged[f] else 0.0)
+                    hold(i3, t3 if squeeze and t3 > 0.0 else 0.0)
+                    drive_capacity[f] = 0.0
                 continue
+            locked_fingers[f] = False
             closing = velocity > 0.0
             sign = 1.0 if closing else -1.0
             if engaged[f]:
                 capacity = fraction * self._finger_capacity
-                # Driving a link into its stop stalls the motor there (PyBullet's limit alone would
-                # let a motor pushing into it drag the other joint).
-                backdriven = False
-                if not on or ((q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open):
-                    locked = True
-                elif locked_fingers[f]:
-                    # Stay held while the load (reflected to the inner joint) is more than the motor can push.
-                    locked = sign * (tau[i2] + tau[i3] / 3.0) >= capacity
-                else:
-                    locked = backdriven = sign * (w[i2] + w[i3]) < -prm.backdrive_speed
-                locked_fingers[f] = locked
-                if locked:
-                    t2, t3 = tau[i2], tau[i3]
-                    squeeze = not held[i2] and self._squeeze(f, t2 + t3 / 3.0)
-                    hold(i2, backdriven, t2 if squeeze and t2 > 0.0 else 0.0)
-                    hold(i3, backdriven, t3 if squeeze and t3 > 0.0 else 0.0)
-                    drive_capacity[f] = 0.0
-                    continue
                 drive_capacity[f] = sign * capacity
                 omega = velocity / INNER_COUNTS_PER_RAD
-                correction = self._half_coupling_rate * (q[i2] - 3.0 * q[i3])
+                # One motor turns both worms: a link against its stop stalls the whole finger.
+                if (q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open:
+                    inner_target = outer_target = 0.0
+                else:
+                    correction = self._half_coupling_rate * (q[i2] - 3.0 * q[i3])
+                    inner_target, outer_target = omega - correction, (omega + correction) * _THIRD
+                    # The coupling correction may slow a joint, never turn it against the drive.
+                    if sign * inner_target < 0.0:
+                        inner_target = 0.0
+                    if sign * outer_target < 0.0:
+                        outer_target = 0.0
                 # One motor: inner torque + outer torque / 3 within capacity (last step's loads).
                 inner_floor, outer_floor = 0.05 * capacity, self._torque_floor_fraction * capacity
                 inner_load, outer_load = sign * tau[i3], sign * tau[i2]
                 inner_force = capacity - inner_load / 3.0 if inner_load > 0.0 else capacity
                 outer_force = capacity - outer_load if outer_load > 0.0 else capacity
-                worm(i2, omega - correction, inner_force if inner_force > inner_floor else inner_floor, sign, w[i2], tau[i2])
-                worm(i3, (omega + correction) * _THIRD, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign,
-                     w[i3], tau[i3])
+                drive_worm(i2, inner_target, inner_force if inner_force > inner_floor else inner_floor, sign)
+                drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign)
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
                 capacity = fraction * self._outer_capacity
-                backdriven = False
-                if not on or (q[i3] >= outer_closed if closing else q[i3] <= outer_open):
-                    locked = True
-                elif locked_fingers[f]:
-                    locked = sign * tau[i3] >= capacity
-                else:
-                    locked = backdriven = sign * w[i3] < -prm.backdrive_speed
-                locked_fingers[f] = locked
-                if locked:
-                    squeeze = not held[i3] and self._squeeze(f, tau[i3])
-                    hold(i3, backdriven, tau[i3] if squeeze else 0.0)
-                    drive_capacity[f] = 0.0
-                else:
-                    worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign, w[i3], tau[i3])
-                    drive_capacity[f] = sign * capacity
+                stalled = q[i3] >= outer_closed if closing else q[i3] <= outer_open
+                drive_worm(i3, 0.0 if stalled else velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
+                drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
         friction = prm.spread_friction_torque
@@ -684,7 +741,7 @@ class HandPlant:
                     commanded = velocity / INNER_COUNTS_PER_RAD
                     if q[i2] >= inner_closed:
                         clutch = capacity
-                    elif state.locked[f] or (inner_speed < 0.5 * commanded and inner_speed <= previous_closing + 0.02 * commanded):
+                    elif inner_speed < 0.5 * commanded and inner_speed <= previous_closing + 0.02 * commanded:
                         outer_load = tau[i3]
                         clutch = capacity - outer_load / 3.0 if outer_load > 0.0 else capacity
                         if tau[i2] < clutch:
@@ -706,21 +763,19 @@ class HandPlant:
                     if lost > -velocity / INNER_COUNTS_PER_RAD:  # the worm: no faster than the motor turns
                         lost = -velocity / INNER_COUNTS_PER_RAD
                     preload = capacity + (impact_gain * lost if lost > 0.0 else 0.0)
+                    if preload > prm.preload_limit:
+                        preload = prm.preload_limit
                     if preload > state.preload[f]:
                         state.preload[f] = preload
             elif velocity < 0.0 and q[i3] <= q[i2] / 3.0:
                 # Opening: the outer link is back at the engaged relation (M at the breakaway position).
                 state.engaged[f] = True
-                state.locked[f] = False
             limit = fraction * prm.motor_peak_torque
-            if state.locked[f]:
-                torque = limit if velocity > 0.0 else -limit  # stalled against a load the worm holds: full push
+            if state.engaged[f]:
+                torque = (tau[i2] + tau[i3] / 3.0) * self._inner_torque_scale
             else:
-                if state.engaged[f]:
-                    torque = (tau[i2] + tau[i3] / 3.0) * self._inner_torque_scale
-                else:
-                    torque = tau[i3] * self._outer_torque_scale
-                torque = limit if torque > limit else (-limit if torque < -limit else torque)
+                torque = tau[i3] * self._outer_torque_scale
+            torque = limit if torque > limit else (-limit if torque < -limit else torque)
             motor_torques[f] = torque
             heat += torque * torque
         if state.drive_on[3]:
@@ -745,7 +800,17 @@ class HandPlant:
         state.engaged[f] = False
         state.breakaway_counts[f] = self._finger_counts(f)
         state.preload[f] = 0.0  # manual §8: the clutch needs a full open to be preloaded again
-        state.locked[f] = False
+
+    def back_off_stop(self, finger: int, counts: float) -> None:
+        """Finger 1-3 is about to move `counts` closed from its open stop after being driven against it
+        (HI's move to 0 closes IOFF counts): that unwinds part of the clutch's preload (§5.3.4 IOFF:
+        "Larger values result in less compression of the Belleville washer", no effect beyond about
+        500 counts; `preload_release_counts`)."""
+        f, release = self._check_finger(finger), self.params.preload_release_counts
+        counts = float(counts)
+        if not (math.isfinite(counts) and counts >= 0.0):
+            raise PlantError(f"counts must be a finite number >= 0, got {counts!r}")
+        self._state.preload[f] *= 1.0 - counts / release if counts < release else 0.0
 
     def _finger_counts(self, f: int) -> float:
         q = self._state.positions
@@ -789,9 +854,9 @@ class HandPlant:
         return np.array(self._state.motor_torques)
 
     def outer_joint_torques(self) -> np.ndarray:
-        """Torque about each finger's outer joint (N·m, + = load against closing), what the gauges sense."""
-        tau = self._state.torques
-        return np.array([tau[i] for i in OUTER_INDEX])
+        """Torque about each finger's outer joint (N·m, + = load against closing), what the gauges sense:
+        what the drive train transmits to the outer link, the motor's push and the worm's hold alike."""
+        return np.array(self._state.outer_loads)
 
     def strain_gauges(self) -> np.ndarray:
         """8-bit strain gauge values (§9.4): offset + gain x outer-joint torque; the spread reads 255."""
@@ -799,8 +864,8 @@ class HandPlant:
 
     def strain_gauges_list(self) -> list[int]:
         """`strain_gauges` as a plain list (the firmware's per-cycle path)."""
-        gain, tau, offsets = self.params.strain_gain, self._state.torques, self.strain_offsets
-        values = [round(offset + gain * tau[joint]) for offset, joint in zip(offsets, OUTER_INDEX)]
+        gain, loads, offsets = self.params.strain_gain, self._state.outer_loads, self.strain_offsets
+        values = [round(offset + gain * load) for offset, load in zip(offsets, loads)]
         return [255 if v > 255 else (0 if v < 0 else v) for v in values] + [255]
 
     def clutch_engaged(self, finger: int) -> bool:
@@ -845,11 +910,13 @@ class HandPlant:
         state.engaged = [True] * 3
         state.locked = [True] * 3
         state.breakaway_counts = [None] * 3
-        state.held = [False] * NUM_JOINTS  # locked joints are held where they are now
+        state.held = [False] * NUM_JOINTS
         state.latched_torque = [0.0] * NUM_JOINTS
         state.drive_capacity = [0.0] * 3
         self._read_joints()
         state.previous_positions = state.positions
+        for joint in WORM_JOINTS:  # the worms hold the fingers where they are now
+            self._hold(joint)
 
     # ---------------------------------------------------------------- wrist and world
     def set_wrist_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0), teleport: bool = False) -> None:
@@ -1016,7 +1083,8 @@ class HandPlant:
         p.restoreState(stateId=state_id, physicsClientId=self._client)
         self._renew_contact_pairs()
         self._state = self._saved[state_id].copy()
-        self._sent_command = None  # resend the joint motor command of the restored state
+        self._sent_command = None  # resend the joint motor command and worm windows of the restored state
+        self._sent_windows = {}
         position, orientation = self._state.wrist_target
         p.changeConstraint(
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
