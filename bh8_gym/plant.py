@@ -104,6 +104,9 @@ class PlantParameters:
     # Physics.
     time_step: float = 0.002  # s; 500 Hz keeps contact stable with the light finger links (<= 2 ms)
     solver_iterations: int = 50  # PyBullet's default
+    # The solver stops early once an iteration changes the impulses by less than this (PyBullet's
+    # solverResidualThreshold, default 1e-7): 8 % of the grasp env's time, the same holds in bench_hold.
+    solver_residual_threshold: float = 1e-4
     gravity: float = 9.81  # m/s^2
 
     # Motors (Table 7) and gears.
@@ -188,9 +191,10 @@ class PlantParameters:
     # and turned 33° in 5 s).
     friction_anchors: bool = True
     # m: PyBullet's torsional friction (torque per newton of normal force) of the finger links' contacts.
-    # The pads are rubber-faced areas, not points: a patch of about 4 mm radius at friction 0.8 resists
-    # 2/3 x 0.8 x 0.004 N·m per N, so a pinched object does not spin about the line between contacts.
-    finger_spinning_friction: float = 0.002
+    # The rubber pads are areas, not points (a 4 mm patch at friction 0.8 resists about 0.002 N·m per N),
+    # but with friction anchors a pinched object does not turn about the line between its contacts
+    # anyway (benchmarks/bench_hold.py), and each torsional row costs 12 % of the grasp env's speed: off.
+    finger_spinning_friction: float = 0.0
     link_mass_scale: float = 1.0  # scales every hand link's mass (randomisation)
 
     # World.
@@ -216,6 +220,8 @@ class PlantParameters:
             raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
         if self.solver_iterations < 1:
             raise PlantError(f"solver_iterations must be at least 1, got {self.solver_iterations!r}")
+        if not self.solver_residual_threshold >= 0.0:
+            raise PlantError(f"solver_residual_threshold must be >= 0, got {self.solver_residual_threshold!r}")
         if not self.preload_release_counts > 0.0:
             raise PlantError(f"preload_release_counts must be > 0, got {self.preload_release_counts!r}")
         if not self.worm_slack >= 0.0:
@@ -386,7 +392,8 @@ class HandPlant:
         """Push `self.params` into PyBullet and derive the per-step constants (plain floats)."""
         prm, cid, hand = self.params, self._client, self.hand_id
         p.setGravity(0.0, 0.0, -prm.gravity, physicsClientId=cid)
-        p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations, physicsClientId=cid)
+        p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations,
+                                    solverResidualThreshold=prm.solver_residual_threshold, physicsClientId=cid)
         for link, unit_mass in zip(self._links, self._unit_masses):
             friction = prm.palm_friction if link == -1 else prm.finger_friction
             spinning = 0.0 if link == -1 else prm.finger_spinning_friction
@@ -622,13 +629,13 @@ class HandPlant:
             back = position - slack
             if back - state.window_low[joint] > slack or state.window_high[joint] != high:
                 state.window_low[joint], state.window_high[joint] = (back if back > low else low), high
-            reach = (high - position) / self.dt
+            reach = (high - position) / self.dt if position < high else 0.0
             target = target if target < reach else reach
         else:
             back = position + slack
             if state.window_high[joint] - back > slack or state.window_low[joint] != low:
                 state.window_low[joint], state.window_high[joint] = low, (back if back < high else high)
-            reach = (low - position) / self.dt
+            reach = (low - position) / self.dt if position > low else 0.0
             target = target if target > reach else reach
         state.target_velocities[joint] = target
         state.forces[joint] = force
@@ -685,8 +692,7 @@ class HandPlant:
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
                 capacity = fraction * self._outer_capacity
-                stalled = q[i3] >= outer_closed if closing else q[i3] <= outer_open
-                drive_worm(i3, 0.0 if stalled else velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
+                drive_worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
                 drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
