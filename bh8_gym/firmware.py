@@ -165,6 +165,7 @@ MOVEMENT_COMMANDS = MOTOR_COMMANDS | {"T"}  # §5.2.1; without a prefix they act
 
 # Per-motor run kinds of a motion command.
 _RUN_POSITION, _RUN_VELOCITY, _RUN_HI_SEEK, _RUN_HI_BACKOFF, _RUN_HI_HOME = range(5)
+_POSITION_RUNS = frozenset((_RUN_POSITION, _RUN_HI_BACKOFF, _RUN_HI_HOME))
 
 
 class FirmwareBusyError(TimeoutError):
@@ -182,16 +183,27 @@ class _FirmwareError(Exception):
 class _MotorRun:
     """Termination bookkeeping of one motor during a motion command (§5.5)."""
 
-    __slots__ = ("motor", "kind", "target", "stall_position", "stall_time", "impacts_left", "reached")
+    __slots__ = ("motor", "kind", "target", "direction", "progress", "stall_time", "impacts_left", "reached")
 
-    def __init__(self, motor: int, kind: int, target: float, position: float, time: float):
+    def __init__(self, motor: int, kind: int, target: float, position: float, time: float, direction: float = 0.0):
         self.motor = motor
         self.kind = kind
         self.target = target
-        self.stall_position = position
+        self.direction = direction  # velocity runs: the drive's sign (+ closes)
         self.stall_time = time
+        self.progress = self.measure(position)
         self.impacts_left = 0
         self.reached = True
+
+    def restart(self, kind: int, target: float, position: float, time: float, direction: float = 0.0) -> None:
+        self.kind, self.target, self.direction = kind, target, direction
+        self.progress, self.stall_time = self.measure(position), time
+
+    def measure(self, position: float) -> float:
+        """How far the motor has got: towards the target (position runs) or in the drive's direction."""
+        if self.kind in _POSITION_RUNS:
+            return -abs(self.target - position)
+        return self.direction * position
 
 
 class FirmwareSnapshot:
@@ -660,13 +672,13 @@ class Firmware:
             position = self._position(m)
             if word == "HI":
                 channel.velocity(-v["IVEL"] / VELOCITY_SCALE, v["FPG"])
-                run = _MotorRun(m, _RUN_HI_SEEK, 0.0, position, t)
+                run = _MotorRun(m, _RUN_HI_SEEK, 0.0, position, t, -1.0)
                 impacts = v["IHIT"] if m != SPREAD else 0
                 run.impacts_left = min(max(impacts, 1), IHIT_MAX_IMPACTS) - 1
             elif word in ("TC", "TO"):
                 speed = v["MCV"] if word == "TC" else -v["MOV"]
                 channel.velocity(speed / VELOCITY_SCALE, v["FPG"])
-                run = _MotorRun(m, _RUN_VELOCITY, 0.0, position, t)
+                run = _MotorRun(m, _RUN_VELOCITY, 0.0, position, t, 1.0 if word == "TC" else -1.0)
             else:
                 run = _MotorRun(m, _RUN_POSITION, targets[m], position, t)
                 self._start_move(channel, v, t, position, targets[m])
@@ -687,9 +699,12 @@ class Firmware:
                 channel = channels[m]
                 position = self._position(m)
                 ended = False
-                if abs(position - run.stall_position) > STALL_DISTANCE_COUNTS or (
-                        run.kind >= _RUN_HI_BACKOFF or run.kind == _RUN_POSITION) and self._on_profile(channel, t, position):
-                    run.stall_position = position
+                # §5.5 case 1: a motor that makes no progress (towards its target, or in its drive's
+                # direction) for TSTOP has stalled; one pushed back counts as stalled too.
+                progress = run.measure(position)
+                if progress - run.progress > STALL_DISTANCE_COUNTS or (
+                        run.kind in _POSITION_RUNS and self._on_profile(channel, t, position)):
+                    run.progress = progress
                     run.stall_time = t
                 elif (t - run.stall_time) * 1000.0 >= max(v["TSTOP"], MIN_STALL_WINDOW_MS) - _EPS:
                     ended = True
@@ -698,8 +713,9 @@ class Firmware:
                         strain = self.plant.strain_gauges()
                     sg = int(strain[m - 1])
                     ended = (v["HSG"] < 255 and sg > v["HSG"]) or (v["LSG"] < 255 and sg < v["LSG"])
-                if not ended and run.kind in (_RUN_POSITION, _RUN_HI_BACKOFF, _RUN_HI_HOME):
-                    ended = (
+                goal = False
+                if not ended and run.kind in _POSITION_RUNS:
+                    ended = goal = (
                         channel.profile_done(t)
                         and abs(round(position) - run.target) <= v["MPE"]
                         and abs(self._velocities[m - 1]) <= GOAL_SETTLE_VELOCITY_CPS
@@ -709,33 +725,33 @@ class Firmware:
                 if run.kind == _RUN_HI_SEEK:
                     if run.impacts_left > 0:
                         run.impacts_left -= 1
-                        run.kind = _RUN_HI_BACKOFF
-                        run.target = position + IHIT_BACKOFF_COUNTS
+                        run.restart(_RUN_HI_BACKOFF, position + IHIT_BACKOFF_COUNTS, position, t)
                         self._start_move(channel, v, t, position, run.target)
                     else:
                         # the stop reads -IOFF from now on (§5.3.4 IOFF), then home to 0
                         self._origin[m - 1] += position + v["IOFF"]
                         if m != SPREAD:
                             self.plant.back_off_stop(m, v["IOFF"])
-                        run.kind = _RUN_HI_HOME
-                        run.target = 0.0
+                        run.restart(_RUN_HI_HOME, 0.0, -float(v["IOFF"]), t)
                         self._start_move(channel, v, t, -float(v["IOFF"]), 0.0)
-                    run.stall_position = self._position(m)
-                    run.stall_time = t
                     continue
                 if run.kind == _RUN_HI_BACKOFF:
-                    run.kind = _RUN_HI_SEEK
+                    run.restart(_RUN_HI_SEEK, 0.0, position, t, -1.0)
                     channel.velocity(-v["IVEL"] / VELOCITY_SCALE, v["FPG"])
-                    run.stall_position = position
-                    run.stall_time = t
                     continue
                 if run.kind == _RUN_HI_HOME:
+                    # §5.2.1 HI: "After an HI, all motors are in their home position; at 0 encoder
+                    # counts." The chip's 3.9 kHz loop settles there; ours, at the physics rate, can
+                    # stop a count short (a finger lifting its own weight at 1 % duty): home is 0.
+                    self._origin[m - 1] += position
+                    position = 0.0
                     self._initialized[m] = True
                 elif run.kind == _RUN_POSITION:
                     run.reached = abs(round(position) - run.target) <= v["MPE"]  # the HCTL counts whole counts
                     if not run.reached and word in POSITION_COMMANDS:
                         self._status[m] = int(Status.COULD_NOT_REACH_POSITION)
-                self._terminate(m, position)
+                # Case 3 (goal reached): HOLD 1 servos at the goal, the HCTL's commanded position.
+                self._terminate(m, run.target if goal else position)
                 runs.remove(run)
         if abort:
             for run in runs:

@@ -175,18 +175,22 @@ def _inner_link(name: str) -> str:
 
 
 def _outer_link(name: str) -> str:
-    """The outer link from its joint to the D-H tip: the pad is the plane y3 = D3, the link ends at
-    x3 = A3, and the corner between them, where {T} is (§9.5), is rounded with TIP_RADIUS. So at the
-    default CT the pad meets the palm face (§8), and the link is as deep as the CAD's (2 x D3)."""
-    half_w, r = FINGER_WIDTH / 2.0, TIP_RADIUS
-    back = -OUTER_HALF_THICKNESS
-    body, size, center = _box((OUTER_START, back, -half_w), (kin.A3, kin.D3 - r, half_w), LINK_RGBA)
+    """The outer link from its joint to the D-H tip: the pad is the plane y3 = D3 and the link ends at
+    x3 = A3 (§9.5: {T} is the pad's end), so a finger at CT meets the palm face (§8). The pad's end is
+    rounded with TIP_RADIUS; the back of the tip is rounded off (its full thickness), as the CAD's
+    tapered tip is, so a closed finger sweeping with the spread clears F3's knuckle."""
+    half_w, r, back = FINGER_WIDTH / 2.0, TIP_RADIUS, OUTER_HALF_THICKNESS
+    heel = kin.A3 - back  # where the rounded back of the tip starts
+    body, _, _ = _box((OUTER_START, -back, -half_w), (heel, kin.D3 - r, half_w), LINK_RGBA)
     pad, _, _ = _box((OUTER_START, kin.D3 - r, -half_w), (kin.A3 - r, kin.D3, half_w), LINK_RGBA)
-    tip = _shape(f'<cylinder radius="{_fmt(r)}" length="{_fmt(FINGER_WIDTH)}"/>', (kin.A3 - r, kin.D3 - r, 0.0), TIP_RGBA)
-    full = np.array([kin.A3 - OUTER_START, kin.D3 - back, FINGER_WIDTH])
-    middle = np.array([(OUTER_START + kin.A3) / 2.0, (kin.D3 + back) / 2.0, 0.0])
+    end, _, _ = _box((heel, 0.0, -half_w), (kin.A3, kin.D3 - r, half_w), LINK_RGBA)
+    cylinder = '<cylinder radius="{}" length="{}"/>'
+    corner = _shape(cylinder.format(_fmt(r), _fmt(FINGER_WIDTH)), (kin.A3 - r, kin.D3 - r, 0.0), TIP_RGBA)
+    rounded = _shape(cylinder.format(_fmt(back), _fmt(FINGER_WIDTH)), (heel, 0.0, 0.0), TIP_RGBA)
+    full = np.array([kin.A3 - OUTER_START, kin.D3 + back, FINGER_WIDTH])
+    middle = np.array([(OUTER_START + kin.A3) / 2.0, (kin.D3 - back) / 2.0, 0.0])
     inertia = _inertial(OUTER_LINK_MASS, middle, _box_inertia(OUTER_LINK_MASS, full))
-    return f'  <link name="{name}">\n{inertia}{body}{pad}{tip}  </link>\n'
+    return f'  <link name="{name}">\n{inertia}{body}{pad}{end}{corner}{rounded}  </link>\n'
 
 
 def _tip_link(name: str) -> str:
