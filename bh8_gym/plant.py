@@ -159,9 +159,14 @@ class PlantParameters:
     # MCV 37.5: from MCV 40 up it breaks away, at 35 it does not (manual §8 troubleshooting: "The close
     # velocity is too slow. Increase the close velocity greater than or equal to 40").
     rotor_impact_gain: float = 1.0
-    impact_memory_time: float = 0.02  # s: how long a stopped link's speed counts as an impact
+    impact_memory_time: float = 0.1  # s: the decay of the inner link's remembered speed, what an impact loses
+    # N·m on the outer joint when the finger stops: from none to this much, less and less of the
+    # rotor's impact reaches the clutch (App. B A1: a fingertip that makes first contact stalls the
+    # finger; only an inner link that does breaks away). A finger stopped at its inner link carries
+    # about 0.01 N·m there, one stopped at its fingertip about 0.85 (measured at MCV 100).
+    tip_impact_load: float = 0.3
     stop_tolerance: float = 0.05 * _DEG  # rad: a joint this close to its limit is against its stop
-    initial_preload: float = 2.99  # N·m: the hand starts as a default HI leaves it (0.9 x preload_limit)
+    initial_preload: float = 3.35  # N·m: the hand starts as a default HI leaves it (0.9 x preload_limit)
     # §5.3.4 IOFF: "Larger values result in less compression of the Belleville washer ... its true range
     # of useful values is from 0 to approximately 500". Backing off the open stop (HI's move to 0 closes
     # IOFF counts) unwinds the preload linearly over this many counts (`back_off_stop`).
@@ -169,7 +174,7 @@ class PlantParameters:
     # N·m: the most the Belleville washers take. Their force is nearly flat over their working travel
     # (the reason for Belleville springs), so slamming the finger open harder than HI does (IVEL 300)
     # preloads no more.
-    preload_limit: float = 3.32
+    preload_limit: float = 3.72
 
     # Strain gauges (§9.4, SPEC §1).
     strain_gain: float = 100.0  # counts per N·m about the outer joint: Figure 28 plots ΔSG -100..100 over -1..1 N·m
@@ -727,7 +732,7 @@ class HandPlant:
         decay = self._impact_decay
         heat = 0.0
         inner_open, inner_closed, outer_closed = self._inner_open, self._inner_closed, self._outer_closed
-        impact_gain = prm.rotor_impact_gain
+        impact_gain, tip_blow = prm.rotor_impact_gain, prm.tip_impact_load
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         closing_peaks, opening_peaks, motor_torques = state.closing_peak, state.opening_peak, state.motor_torques
         for f, i2, i3 in FINGER_JOINTS:
@@ -764,8 +769,11 @@ class HandPlant:
                         lost = previous_closing - (inner_speed if inner_speed > 0.0 else 0.0)
                         if lost > commanded:  # the worm: the link ran no faster than the motor turns
                             lost = commanded
-                        if lost > 0.0:
-                            clutch += impact_gain * lost * (clutch / capacity if clutch < capacity else 1.0)
+                        # App. B A1: a fingertip making first contact stalls the finger (no breakaway):
+                        # a loaded outer joint took the blow, and the rotor's impact went into its worm.
+                        blow = 1.0 - state.outer_loads[f] / tip_blow if state.outer_loads[f] > 0.0 else 1.0
+                        if lost > 0.0 and blow > 0.0:
+                            clutch += impact_gain * lost * blow * (clutch / capacity if clutch < capacity else 1.0)
                         if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f]:
                             self._break_away(f)
                 elif velocity < 0.0 and q[i2] <= inner_open:
