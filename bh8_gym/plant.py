@@ -131,7 +131,7 @@ class PlantParameters:
     # it stopped. The slack is the drive train's compliance (gear backlash, cable and link elasticity),
     # and it keeps the limits out of the solver until a load pushes against the worm: with none, the
     # grasp env steps 14 % slower (callgrind).
-    worm_slack: float = 0.15 * _DEG
+    worm_slack: float = 0.05 * _DEG
     # Nor can a load helping the motion make a finger joint run faster than the motor turns it. A joint
     # within this fraction of its target speed (or faster) is braked at its target speed unless its
     # motor has to push at its limit.
@@ -159,14 +159,14 @@ class PlantParameters:
     # MCV 37.5: from MCV 40 up it breaks away, at 35 it does not (manual §8 troubleshooting: "The close
     # velocity is too slow. Increase the close velocity greater than or equal to 40").
     rotor_impact_gain: float = 1.0
-    impact_memory_time: float = 0.1  # s: the decay of the inner link's remembered speed, what an impact loses
+    impact_memory_time: float = 0.5  # s: the decay of the inner link's remembered speed, what an impact loses
     # N·m on the outer joint when the finger stops: from none to this much, less and less of the
     # rotor's impact reaches the clutch (App. B A1: a fingertip that makes first contact stalls the
     # finger; only an inner link that does breaks away). A finger stopped at its inner link carries
     # about 0.01 N·m there, one stopped at its fingertip about 0.85 (measured at MCV 100).
     tip_impact_load: float = 0.3
     stop_tolerance: float = 0.05 * _DEG  # rad: a joint this close to its limit is against its stop
-    initial_preload: float = 3.35  # N·m: the hand starts as a default HI leaves it (0.9 x preload_limit)
+    initial_preload: float = 3.47  # N·m: the hand starts as a default HI leaves it (0.9 x preload_limit)
     # §5.3.4 IOFF: "Larger values result in less compression of the Belleville washer ... its true range
     # of useful values is from 0 to approximately 500". Backing off the open stop (HI's move to 0 closes
     # IOFF counts) unwinds the preload linearly over this many counts (`back_off_stop`).
@@ -174,7 +174,7 @@ class PlantParameters:
     # N·m: the most the Belleville washers take. Their force is nearly flat over their working travel
     # (the reason for Belleville springs), so slamming the finger open harder than HI does (IVEL 300)
     # preloads no more.
-    preload_limit: float = 3.72
+    preload_limit: float = 3.86
 
     # Strain gauges (§9.4, SPEC §1).
     strain_gain: float = 100.0  # counts per N·m about the outer joint: Figure 28 plots ΔSG -100..100 over -1..1 N·m
@@ -300,6 +300,7 @@ class _PlantState:
     held: list = field(default_factory=lambda: [False] * NUM_JOINTS)
     latched_torque: list = field(default_factory=lambda: [0.0] * NUM_JOINTS)  # N·m a locked joint keeps pressing
     drive_capacity: list = field(default_factory=lambda: [0.0] * 3)  # N·m of last step's drive, + closing, 0 held
+    at_stop: list = field(default_factory=lambda: [False] * 3)  # driven into a joint stop: stalled at full push
     # Where each finger joint may be (PyBullet joint limits): the worm's teeth (see PlantParameters.worm_slack).
     window_low: list = field(default_factory=lambda: list(_JOINT_RANGE_LOW))
     window_high: list = field(default_factory=lambda: list(_JOINT_RANGE_HIGH))
@@ -430,6 +431,7 @@ class HandPlant:
         self._spread_low, self._spread_high = kin.SPREAD_RANGE
         self._joint_low, self._joint_high = _JOINT_RANGE_LOW, _JOINT_RANGE_HIGH
         self._slack = prm.worm_slack
+        self._coupling_play = 3.0 * prm.worm_slack  # rad of inner-link lead (q2 - 3 q3) the gears allow
         self._spread_low_stop, self._spread_high_stop = self._spread_low + stop, self._spread_high - stop
         self._brake_torque = prm.overrun_brake_torque
         self._speed_limit = prm.motor_no_load_speed
@@ -655,16 +657,18 @@ class HandPlant:
     def _command_joints(self) -> None:
         """Joint targets, force limits and worm windows for this step from the drives and the clutch."""
         prm, state = self.params, self._state
-        q, tau = state.positions, state.torques
+        q, w, tau = state.positions, state.velocities, state.torques
         inner_open, inner_closed = self._inner_open, self._inner_closed
         outer_open, outer_closed = self._outer_open, self._outer_closed
         hold, drive_worm = self._hold, self._drive_worm
+        dt, coupling_play = self.dt, self._coupling_play
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
-        locked_fingers, engaged, drive_capacity = state.locked, state.engaged, state.drive_capacity
+        locked_fingers, engaged, drive_capacity, at_stop = state.locked, state.engaged, state.drive_capacity, state.at_stop
         for f, i2, i3 in FINGER_JOINTS:
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
             if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
+                at_stop[f] = False
                 if not locked_fingers[f]:
                     # The motor stops: the worms hold the finger where it is; a drive that was pushing
                     # a load closing leaves it wound up against that load.
@@ -683,12 +687,22 @@ class HandPlant:
                 drive_capacity[f] = sign * capacity
                 omega = velocity / INNER_COUNTS_PER_RAD
                 # One motor turns both worms: a link against its stop stalls the whole finger.
-                if (q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open:
+                at_stop[f] = (q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open
+                if at_stop[f]:
                     inner_target = outer_target = 0.0
                 else:
-                    correction = self._half_coupling_rate * (q[i2] - 3.0 * q[i3])
+                    ahead = q[i2] - 3.0 * q[i3]  # rad the inner link leads the 3:1 relation
+                    correction = self._half_coupling_rate * ahead
                     inner_target, outer_target = omega - correction, (omega + correction) * _THIRD
-                    # The coupling correction may slow a joint, never turn it against the drive.
+                    # Neither joint runs ahead of the other by more than the gear's play: a link held
+                    # back stops its partner (the whole finger stalls), however fast the motor is told
+                    # to turn. The coupling correction may slow a joint, never turn it against the drive.
+                    inner_room = 3.0 * sign * w[i3] + (coupling_play - sign * ahead) / dt
+                    outer_room = (sign * w[i2] + (coupling_play + sign * ahead) / dt) * _THIRD
+                    if sign * inner_target > inner_room:
+                        inner_target = sign * inner_room
+                    if sign * outer_target > outer_room:
+                        outer_target = sign * outer_room
                     if sign * inner_target < 0.0:
                         inner_target = 0.0
                     if sign * outer_target < 0.0:
@@ -702,6 +716,7 @@ class HandPlant:
                 drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign)
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
+                at_stop[f] = q[i3] >= outer_closed if closing else q[i3] <= outer_open
                 capacity = fraction * self._outer_capacity
                 drive_worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
                 drive_capacity[f] = sign * capacity
@@ -791,7 +806,9 @@ class HandPlant:
                 # Opening: the outer link is back at the engaged relation (M at the breakaway position).
                 state.engaged[f] = True
             limit = fraction * prm.motor_peak_torque
-            if state.engaged[f]:
+            if state.at_stop[f]:
+                torque = limit if velocity > 0.0 else -limit  # stalled against the stop: full push
+            elif state.engaged[f]:
                 torque = (tau[i2] + tau[i3] / 3.0) * self._inner_torque_scale
             else:
                 torque = tau[i3] * self._outer_torque_scale

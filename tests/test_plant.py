@@ -25,7 +25,8 @@ def run(plant, seconds, each=None):
 
 
 def init_finger(plant, motor):
-    """Like HI: slam the finger open against its stop at IVEL 300 twice (IHIT 2), preloading the clutch."""
+    """Like HI: slam the finger open against its stop at IVEL 300 twice (IHIT 2), preloading the clutch,
+    then back off IOFF 50 counts (§5.3.4 IOFF)."""
     for _ in range(2):
         plant.set_drive(motor, -54_000.0, IVEL_300_FRACTION)
         run(plant, 0.6)
@@ -33,6 +34,7 @@ def init_finger(plant, motor):
         run(plant, 0.1)
     plant.set_drive(motor, -54_000.0, IVEL_300_FRACTION)
     run(plant, 0.3)
+    plant.back_off_stop(motor, 50.0)
 
 
 def link_pose(plant, name):
@@ -75,15 +77,19 @@ def test_free_close_keeps_the_3_to_1_coupling(plant):
 
 
 def test_finger_speed_allows_app_a_timing(plant):
-    """App. A: open to closed (17,500 counts) in about 1 s at MCV 100; spread 180° in about 0.3 s at 60."""
+    """App. A: open to closed in about 1 s at MCV 100; spread 180° in about 0.3 s at 60. Closed is the
+    palm: §8 puts the default CT (17,000 counts) at or just beyond the palm surface, where the pad stops."""
     plant.set_drive(1, MCV_100, 1.0)
     plant.set_drive(4, 60 / 16 / 256e-6, 1.0)
     run(plant, 0.3)
     assert plant.motor_positions()[3] == pytest.approx(3150.0, abs=30.0)
     run(plant, 0.3)
     assert plant.motor_positions()[0] == pytest.approx(0.6 * MCV_100, rel=0.03)
-    run(plant, 0.4)  # 17,500 counts at 24,414/s: 0.72 s, within App. A's "about 1 s"
-    assert plant.motor_positions()[0] > 17_500.0
+    run(plant, 0.4)  # 17,000 counts at 24,414/s: 0.70 s, within App. A's "about 1 s"
+    assert 17_000.0 < plant.motor_positions()[0] < 17_200.0  # stopped by the palm, short of the 140° stop
+    gap = p.getClosestPoints(plant.hand_id, plant.hand_id, 0.01, -1, plant._link_index_by_name["f1_outer"],
+                             physicsClientId=plant.client)
+    assert -0.001 < min(c[8] for c in gap) < 0.0005  # on the palm face, not through it
 
 
 def test_breakaway_on_an_inner_link_obstacle_and_reengagement(plant):
@@ -115,16 +121,21 @@ def test_breakaway_on_an_inner_link_obstacle_and_reengagement(plant):
     assert plant.clutch_preload(3) > 0.0  # driven against the open stop again
 
 
-def test_slow_close_does_not_break_away(plant):
-    """Manual §8 troubleshooting ("close velocity too slow") and SPEC §8: after a default HI, a close at
-    MCV 40 stalls on the obstacle without breakaway while MCV 100 breaks away (previous test)."""
+@pytest.mark.parametrize("mcv, breaks_away", [(20, False), (35, False), (40, True), (60, True)])
+def test_breakaway_from_mcv_40_up(plant, mcv, breaks_away):
+    """Manual §8 troubleshooting ("The TorqueSwitch does not breakaway properly ... The close velocity is
+    too slow. Increase the close velocity greater than or equal to 40") and SPEC §8: after a default HI,
+    a close at MCV 40 or more breaks away on an obstacle at the inner link; a slower one stalls on it,
+    the clutch engaged and the 3:1 coupling kept."""
     obstacle_on_inner_link(plant)
     init_finger(plant, 3)
-    plant.set_drive(3, MCV_40, 1.0)
+    plant.set_drive(3, mcv / 16 / 256e-6, 1.0)
     run(plant, 1.6)
-    assert plant.clutch_engaged(3)
+    assert plant.clutch_engaged(3) != breaks_away
     inner, outer = np.degrees(plant.joint_angles()[6:8])
-    assert 50.0 < inner < 62.0 and outer == pytest.approx(inner / 3.0, abs=1.0)
+    assert 50.0 < inner < 62.0
+    if not breaks_away:
+        assert outer == pytest.approx(inner / 3.0, abs=1.0)
 
 
 def test_blocked_outer_link_stalls_the_whole_finger(plant):
@@ -185,7 +196,8 @@ def test_powered_finger_pushed_backwards_does_not_move(plant):
         p.applyExternalForce(plant.hand_id, f3_outer, list(-30.0 * rotation[:, 2]), position, p.WORLD_FRAME, physicsClientId=plant.client)
 
     run(plant, 0.5, push)
-    assert plant.motor_positions()[2] > start - 5.0  # (a one-step give is pulled back by the worm hold)
+    # The worm gives no more than the drive train's compliance (PlantParameters.worm_slack, twice: 9 counts).
+    assert plant.motor_positions()[2] > start - 10.0
 
 
 def test_strain_gauge_offset_and_fingertip_load(plant):
@@ -249,7 +261,7 @@ def test_fingers_at_full_spread_close_without_touching(plant):
         plant.set_drive(motor, MCV_100, 1.0)
     touches = []
     run(plant, 1.0, lambda: touches.extend(p.getContactPoints(plant.hand_id, plant.hand_id, physicsClientId=plant.client)))
-    assert touches == []
+    assert {(c[3], c[4]) for c in touches if c[3] != -1 and c[4] != -1} == set()  # only fingertips on the palm
     assert np.all(plant.motor_positions()[:3] > 17_000.0)
 
 
@@ -344,7 +356,7 @@ def test_set_parameters_changes_behaviour_and_restore_state_still_works(plant):
     assert plant.strain_offsets == (101, 102, 103)
     assert p.getDynamicsInfo(plant.hand_id, plant.joint_indices[2], physicsClientId=plant.client)[1] == pytest.approx(0.3)
     slow_positions, slow_gauges = close()
-    assert np.all(slow_positions < 0.3 * 5_000.0 + 20.0) and np.all(default_positions > 0.25 * MCV_100)
+    assert np.all(slow_positions < 1.05 * 0.3 * 5_000.0) and np.all(default_positions > 0.25 * MCV_100)
     assert abs(int(slow_gauges[0]) - 101) <= 3
     plant.restore_state(state)
     first = close()
