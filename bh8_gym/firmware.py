@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import copy
 import re
-from math import isnan
+from math import exp, isnan
 
 from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
 from bh8_gym.nvstore import NVStore
@@ -98,12 +98,17 @@ STALL_DISTANCE_COUNTS = 3.0
 # a motor starting from rest moves less than STALL_DISTANCE_COUNTS in its first physics step, and
 # HI would take that for the open stop (and zero the encoder wherever the finger was).
 MIN_STALL_WINDOW_MS = 10.0
+# Our choice: the time constant (s) of the smoothing applied to the encoder for stall detection. It
+# removes the physics' step-to-step jitter of a finger pressed on an object (a few counts) and keeps
+# the motion of a moving motor (a stall needs STALL_DISTANCE_COUNTS of quiet for TSTOP).
+STALL_SMOOTHING_S = 0.008
 # Our choice for HI: how far a finger backs off the open stop between impacts (§5.3.4 IHIT); about
 # 4 degrees of the inner link, enough to reach IVEL again before the next impact.
 IHIT_BACKOFF_COUNTS = 500.0
-# Our choice for §5.5 case 3: the goal counts as reached once the profile has ended, the motor is
-# within MPE AND has settled below this speed (counts/s), so a HOLD 0 motor is switched off where
-# it will stay (FGET P after "M 1000" reads about 1000, not the lag of the decelerating motor).
+# §5.5 case 3: "As soon as the goal position is reached" (the profile has ended and the motor is
+# within MPE) the motor terminates; HOLD 1 then servos at the goal. Our choice: a HOLD 0 motor must
+# also have settled below this speed (counts/s), so it is switched off where it will stay (FGET P
+# after "M 1000" reads about 1000, not the lag of the decelerating motor).
 GOAL_SETTLE_VELOCITY_CPS = 500.0
 IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded simulated time
 # Simulated seconds `transact` waits for a command to finish. A motion can run for ever (a finger
@@ -183,7 +188,8 @@ class _FirmwareError(Exception):
 class _MotorRun:
     """Termination bookkeeping of one motor during a motion command (§5.5)."""
 
-    __slots__ = ("motor", "kind", "target", "direction", "progress", "stall_time", "impacts_left", "reached")
+    __slots__ = ("motor", "kind", "target", "direction", "progress", "smooth", "stall_time", "impacts_left",
+                 "reached")
 
     def __init__(self, motor: int, kind: int, target: float, position: float, time: float, direction: float = 0.0):
         self.motor = motor
@@ -191,19 +197,28 @@ class _MotorRun:
         self.target = target
         self.direction = direction  # velocity runs: the drive's sign (+ closes)
         self.stall_time = time
-        self.progress = self.measure(position)
+        self.smooth = position  # the encoder, smoothed over STALL_SMOOTHING_S
+        self.progress = self.measure(position)  # where the motor was when it last moved on
         self.impacts_left = 0
         self.reached = True
 
     def restart(self, kind: int, target: float, position: float, time: float, direction: float = 0.0) -> None:
         self.kind, self.target, self.direction = kind, target, direction
-        self.progress, self.stall_time = self.measure(position), time
+        self.smooth, self.progress, self.stall_time = position, self.measure(position), time
 
     def measure(self, position: float) -> float:
-        """How far the motor has got: towards the target (position runs) or in the drive's direction."""
+        """Where a position run's motor is (any way it moves is motion: a servo swinging about its
+        goal is not stalled); how far a velocity run's motor has got in its drive's direction (one
+        pushed back, against its drive, is stalled)."""
+        return position if self.kind in _POSITION_RUNS else self.direction * position
+
+    def moved(self, position: float, smoothing: float) -> bool:
+        """Whether the smoothed encoder has moved on by more than STALL_DISTANCE_COUNTS since `progress`."""
+        self.smooth += smoothing * (position - self.smooth)
+        now = self.measure(self.smooth)
         if self.kind in _POSITION_RUNS:
-            return -abs(self.target - position)
-        return self.direction * position
+            return abs(now - self.progress) > STALL_DISTANCE_COUNTS
+        return now - self.progress > STALL_DISTANCE_COUNTS
 
 
 class FirmwareSnapshot:
@@ -247,6 +262,7 @@ class Firmware:
         self._motor_table = motor_parameters(profile)
         self._global_table = global_parameters(profile)
         self._dt = float(plant.dt)
+        self._stall_smoothing = 1.0 - exp(-self._dt / STALL_SMOOTHING_S)
         self._time_base = float(plant.time)
         self._steps = 0
         self._physics_time = self._time_base
@@ -699,12 +715,12 @@ class Firmware:
                 channel = channels[m]
                 position = self._position(m)
                 ended = False
-                # §5.5 case 1: a motor that makes no progress (towards its target, or in its drive's
-                # direction) for TSTOP has stalled; one pushed back counts as stalled too.
-                progress = run.measure(position)
-                if progress - run.progress > STALL_DISTANCE_COUNTS or (
+                # §5.5 case 1: a motor that has not moved on for TSTOP has stalled ("until no motion
+                # is detected", App. B A1). The encoder is smoothed first: a finger pressing on an
+                # object can jitter by a few counts from one physics step to the next.
+                if run.moved(position, self._stall_smoothing) or (
                         run.kind in _POSITION_RUNS and self._on_profile(channel, t, position)):
-                    run.progress = progress
+                    run.progress = run.measure(run.smooth)
                     run.stall_time = t
                 elif (t - run.stall_time) * 1000.0 >= max(v["TSTOP"], MIN_STALL_WINDOW_MS) - _EPS:
                     ended = True
@@ -718,7 +734,7 @@ class Firmware:
                     ended = goal = (
                         channel.profile_done(t)
                         and abs(round(position) - run.target) <= v["MPE"]
-                        and abs(self._velocities[m - 1]) <= GOAL_SETTLE_VELOCITY_CPS
+                        and (v["HOLD"] or abs(self._velocities[m - 1]) <= GOAL_SETTLE_VELOCITY_CPS)
                     )
                 if not ended:
                     continue

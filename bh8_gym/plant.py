@@ -140,7 +140,7 @@ class PlantParameters:
     # PyBullet motor's limit is symmetric: the brake also pushes forward until the next step notices a
     # stop or an object. The full motor torque at the inner joint (0.05 x 125 x 0.4) is far above the
     # aiding loads (finger weight about 0.05 N·m) and no more than the motor itself could push.
-    overrun_brake_torque: float = 2.5
+    overrun_brake_torque: float = 0.3
     # Squeeze kept by a locked finger (§9.3.1, FAQ A1: the grasp stays with the motor current removed).
     # The finger links and cable are elastic: a drive stalled against a load winds them up, and the
     # self-locking worm keeps that load when it locks. Our estimate of the elastic travel: about 1° at
@@ -635,7 +635,8 @@ class HandPlant:
         velocity = state.velocities[joint]
         slack, low, high = self._slack, self._joint_low[joint], self._joint_high[joint]
         forward = sign * target
-        if forward > 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
+        # (a joint told to wait, forward 0, is braked too: gravity must not turn it either way)
+        if forward >= 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
                 and sign * state.torques[joint] < force and self._brake_torque > force:
             force = self._brake_torque
         if sign > 0.0:
@@ -697,8 +698,9 @@ class HandPlant:
                     # Neither joint runs ahead of the other by more than the gear's play: a link held
                     # back stops its partner (the whole finger stalls), however fast the motor is told
                     # to turn. The coupling correction may slow a joint, never turn it against the drive.
-                    inner_room = 3.0 * sign * w[i3] + (coupling_play - sign * ahead) / dt
-                    outer_room = (sign * w[i2] + (coupling_play + sign * ahead) / dt) * _THIRD
+                    partner_inner, partner_outer = sign * w[i2], sign * w[i3]  # how fast each partner is going along
+                    inner_room = 3.0 * (partner_outer if partner_outer > 0.0 else 0.0) + (coupling_play - sign * ahead) / dt
+                    outer_room = ((partner_inner if partner_inner > 0.0 else 0.0) + (coupling_play + sign * ahead) / dt) * _THIRD
                     if sign * inner_target > inner_room:
                         inner_target = sign * inner_room
                     if sign * outer_target > outer_room:
