@@ -65,7 +65,7 @@ import copy
 import re
 from math import exp, isnan
 
-from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
+from bh8_gym.motion_control import ACCEL_SCALE, HOLD, VELOCITY_SCALE, MotorChannel
 from bh8_gym.nvstore import NVStore
 from bh8_gym.parameters import (
     FIRMWARE_PROFILES,
@@ -638,7 +638,11 @@ class Firmware:
         targets = {}
         for m in motors:
             step = self._motor_values[m]["DS"] if value is None else value
-            targets[m] = float(round(self._position(m))) + direction * step
+            # From the HCTL's commanded position: a held motor's set point (a servo still settling,
+            # the back-drivable spread, is not a step short), else where the motor is.
+            channel = self._channels[m]
+            start = channel.set_point if channel.mode == HOLD else round(self._position(m))
+            targets[m] = float(start) + direction * step
         self._start_position_command(word, motors, targets)
 
     def _cmd_C(self, motors, args):

