@@ -2,8 +2,8 @@
 App. B FAQ A1: the grasp stays with the motor current removed).
 
 Per trial: a palm-down hand at the defaults (HI, HOLD 0 on the fingers) over an object standing on
-the table, the palm face 15 mm above the object's top (at least 115 mm above the table, as the grasp
-env places it), placed with the env's arm error (±2 cm, ±15° yaw); `GC`; the arm lifts the hand
+the table, placed as the grasp env places it: the knuckles 1-3 cm above the object's top (the palm
+face at least 115 mm above the table), with the arm's error (±2 cm, ±15° yaw); `GC`; the arm lifts the hand
 10 cm in 0.7 s (minimum jerk) and holds it still for 5 s (`--shake`: shaken ±1 cm at 2 Hz instead).
 For each shape: cylinders, boxes, spheres and capsules of three sizes spanning the env's graspable
 range, masses and frictions drawn from its ranges, 15 placements per size (45 trials per shape).
@@ -33,7 +33,7 @@ import numpy as np
 import pybullet as p
 
 from bh8_gym.firmware import Firmware
-from bh8_gym.kinematics import DW
+from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.plant import HandPlant, PlantParameters
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
@@ -44,7 +44,7 @@ MASS_RANGE = (0.05, 0.40)  # kg (envs.objects.PrimitiveRanges)
 FRICTION_RANGE = (0.4, 1.2)
 POSITION_ERROR = 0.02  # m, envs.scenes.PlacementRanges
 YAW_ERROR = math.radians(15.0)
-CLEARANCE = 0.015  # m between the palm face and the object's top
+CLEARANCE = (0.01, 0.03)  # m between the knuckles and the object's top (envs.scenes.PlacementRanges)
 MIN_PALM_ABOVE_TABLE = 0.115
 LIFT_HEIGHT, LIFT_SECONDS, HOLD_SECONDS = 0.10, 0.7, 5.0
 SHAKE_AMPLITUDE, SHAKE_HZ = 0.01, 2.0
@@ -61,6 +61,7 @@ class Trial:
     friction: float
     offset: tuple[float, float]
     yaw: float
+    clearance: float
     shake: bool = False
 
 
@@ -72,7 +73,7 @@ def trials(shapes, placements: int, shake: bool, seed: int = 0) -> list[Trial]:
             for _ in range(placements):
                 offset = tuple(float(v) for v in rng.uniform(-POSITION_ERROR, POSITION_ERROR, 2))
                 out.append(Trial(shape, size, float(rng.uniform(*MASS_RANGE)), float(rng.uniform(*FRICTION_RANGE)),
-                                 offset, float(rng.uniform(-YAW_ERROR, YAW_ERROR)), shake))
+                                 offset, float(rng.uniform(-YAW_ERROR, YAW_ERROR)), float(rng.uniform(*CLEARANCE)), shake))
     return out
 
 
@@ -118,7 +119,7 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     fw.transact(b"HI\r")
     fw.transact(b"GFSET HOLD 0\r")
     body, height = _object(plant, trial)
-    wrist_z = max(height + CLEARANCE, MIN_PALM_ABOVE_TABLE) + DW
+    wrist_z = max(height + KNUCKLE_HEIGHT + trial.clearance, MIN_PALM_ABOVE_TABLE) + PALM_TOP
     plant.set_wrist_pose((0.0, 0.0, wrist_z), PALM_DOWN, teleport=True)
     fw.run_for(0.1)  # the object settles
     fingers = {plant._link_index_by_name[f"f{f}_{part}"]: f - 1 for f in (1, 2, 3) for part in ("inner", "outer")}

@@ -64,6 +64,7 @@ KNUCKLE_WIDTH = 0.0246
 SPREAD_KNUCKLE = (-0.0123, kin.A1 + 0.015, 0.015)  # (start, end along x1, top above the palm face)
 FIXED_KNUCKLE = (0.035, 0.061, 0.009)
 KNUCKLE_BELOW = 0.010  # how far the housing's box reaches below the palm face (into the palm)
+KNUCKLE_HEIGHT = max(SPREAD_KNUCKLE[2], FIXED_KNUCKLE[2])  # how far the hand stands proud of its palm face
 
 PALM_RGBA = (0.22, 0.23, 0.25, 1.0)
 KNUCKLE_RGBA = (0.12, 0.12, 0.13, 1.0)

@@ -19,7 +19,7 @@ from math import cos, pi, radians, sin
 
 import numpy as np
 
-from bh8_gym.kinematics import DW
+from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.envs.objects import ObjectLoader, ObjectSet, ObjectSpec
 
 # Quaternion (x, y, z, w) turning the wrist frame's z axis (out through the palm, §9.5) to world -z.
@@ -86,7 +86,9 @@ class PlacementRanges:
     # calibrated RGB-D pipeline on a tabletop).
     position_error: float = 0.02  # metres, each of x and y
     yaw_error: float = radians(15.0)
-    clearance: tuple[float, float] = (0.01, 0.03)  # palm face above the object's top, metres
+    # The knuckle housings above the object's top (they stand KNUCKLE_HEIGHT, 15 mm, proud of the
+    # palm face), metres.
+    clearance: tuple[float, float] = (0.01, 0.03)
     # Closing fingertips sweep down to 95 mm below the palm face (FK along the 3:1 coupling: deepest
     # at an inner angle of 50°, 60 mm from the palm axis); the rounded fingertip adds about 10 mm
     # and 10 mm of margin keeps it off the table, so fingers meet the object's side instead of
@@ -129,8 +131,8 @@ class GraspScene:
         self.table = plant.table_id
         self._table_half_height = -pybullet.getBasePositionAndOrientation(self.table, physicsClientId=self.client)[0][2]
         self.wrist_start = np.array(plant.params.wrist_position, dtype=float)
-        #: World height of the palm face (the wrist hangs palm-down, the palm face Dw below it).
-        self.palm_height = float(self.wrist_start[2] - DW)
+        #: World height of the palm face (the wrist hangs palm-down, the palm face PALM_TOP below it).
+        self.palm_height = float(self.wrist_start[2] - PALM_TOP)
         self._wrist_target = self.wrist_start.copy()
         self.table_top = 0.0
         self.object_body: int | None = None
@@ -168,7 +170,7 @@ class GraspScene:
         low, high = p.getAABB(body, -1, physicsClientId=client)
         height = high[2] - low[2]
         bottom_offset = -5.0 - low[2]
-        palm_above_table = max(height + episode.clearance, self.placement.min_palm_above_table)
+        palm_above_table = max(height + KNUCKLE_HEIGHT + episode.clearance, self.placement.min_palm_above_table)
         self.table_top = self.palm_height - palm_above_table
         p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
                                           physicsClientId=client)
