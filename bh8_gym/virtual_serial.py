@@ -448,9 +448,17 @@ class PtyServer:
 
 # -- the `bh8 serve` subcommand ---------------------------------------------------------------
 
+def _state_directory(text: str) -> Path:
+    """argparse `type=` of --state: an empty path would be "." (the store written into the working
+    directory), so it is refused as bh8sim://?state= refuses it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("needs a directory, got an empty value")
+    return Path(text)
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--state", metavar="DIR", type=Path, default=None,
+        "--state", metavar="DIR", type=_state_directory, default=None,
         help=f"non-volatile store of the simulated hand (default: {default_state_dir()})",
     )
     parser.add_argument(
