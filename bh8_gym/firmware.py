@@ -34,6 +34,9 @@ constant below or documented here):
 - Stall (§5.5 case 1): a driven motor that has not moved more than `STALL_DISTANCE_COUNTS` for
   TSTOP ms (at least `MIN_STALL_WINDOW_MS`) terminates; a profile move whose motor keeps up with
   its profile is not stalled (at its start the profile has not moved that far yet).
+- ACCEL 0 (in range, §5.3.4): the HCTL's trapezoid (§9.2.1) cannot accelerate, so a position move
+  never leaves its start; the motor, held at rest, stalls and terminates TSTOP ms later (§5.5
+  case 1): C and O answer without error, M/HOME/IO/IC with ERR 16.
 - Strain-gauge termination (§5.5 case 2) compares the raw gauge value; SGFLIP only changes what is
   sent to the host (FGET SG, LFS), as §5.3.4 says.
 - Over-temperature (§5.4.1 OTEMP): checked when a motor command (HI HOME M IO IC C O TC TO LOOP)
@@ -773,8 +776,10 @@ class Firmware:
     def _on_profile(channel, t: float, position: float) -> bool:
         """A profile move still running with its motor keeping up: not stalled (§5.5 case 1 is an
         obstacle stopping the motion), however short TSTOP; at the start the profile has not yet
-        moved STALL_DISTANCE_COUNTS. Once the profile has ended, a motor at rest stalls as usual."""
-        return not channel.profile_done(t) and abs(channel.profile(t)[0] - position) <= STALL_DISTANCE_COUNTS
+        moved STALL_DISTANCE_COUNTS. Once the profile has ended, a motor at rest stalls as usual,
+        and so does one whose profile never moves (ACCEL 0): it ends TSTOP ms later."""
+        return (not channel.profile_frozen and not channel.profile_done(t)
+                and abs(channel.profile(t)[0] - position) <= STALL_DISTANCE_COUNTS)
 
     def _position(self, m: int) -> float:
         """The HCTL position of motor m in counts (float)."""
