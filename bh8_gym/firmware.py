@@ -304,6 +304,11 @@ class Firmware:
         return self._loop_layout is not None
 
     @property
+    def pending_input(self) -> int:
+        """Bytes written and not yet consumed (a server reads no more while this is high)."""
+        return len(self._input)
+
+    @property
     def loop_layout(self) -> LoopLayout | None:
         """The RealTime block layout while in LOOP mode, else None."""
         return self._loop_layout
@@ -435,7 +440,11 @@ class Firmware:
     def _save(self, motors=(), global_values: bool = False) -> None:
         """One store write: the counters, plus the parameter sets of `motors` and/or the globals."""
         uptime = self._uptime_seconds()
-        self.store.save((dict(zip(MOTORS, self._odometer)), self._update_peak_temperature(), uptime),
+        try:
+            peak = self._update_peak_temperature()
+        except ValueError:  # a NaN temperature (the physics failed): the counters are saved all the same
+            peak = self._peak_temperature
+        self.store.save((dict(zip(MOTORS, self._odometer)), peak, uptime),
                         motors={m: self._motor_values[m] for m in motors},
                         global_values=self._globals if global_values else None)
         self._uptime_base = uptime
