@@ -284,3 +284,33 @@ def test_a_store_nested_too_deep_is_set_aside_and_the_server_serves(tmp_path):
     err = link.process.stderr.read()
     assert "nested too deep" in err and "starts from factory values" in err and "Traceback" not in err
     assert len(list(store.glob("nvstore.json.unreadable-*"))) == 1
+
+
+# -- objects ----------------------------------------------------------------------------------
+
+_CRASHING_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 999999\n"
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("sphere:1e308", "each extent must be 0.001 to 2 m"),
+    ("box:1e300x1e300x1e300", "each extent must be"),
+    ("box:0.05;mass=1e300", "mass must be 0.001 to 10 kg"),
+    ("box:0.05;friction=1e300", "friction must be 0 to 10"),
+    ("box:0.05@1e300,0,0", "position must be x, y, z within"),
+    ("box:nan", "positive number"),
+    ("{tmp}/crash.obj:0.05", "face vertex 999999"),
+    ("{tmp}/crash.obj:1e300", "face vertex 999999"),
+])
+def test_an_object_outside_the_physical_bounds_or_a_crashing_mesh_is_a_usage_error(tmp_path, spec, message):
+    """`--object sphere:1e308` (or a 1e300 box) served, then HI died on NaN physics ("cannot convert
+    float NaN to integer") and the shutdown died too; an OBJ whose face names a missing vertex
+    killed the process (SIGSEGV). Both are refused up front: exit 2, one line naming the object."""
+    (tmp_path / "crash.obj").write_text(_CRASHING_OBJ)
+    spec = spec.format(tmp=tmp_path)
+    process = subprocess.run(
+        [sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(tmp_path / "store"), "--object", spec],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert process.returncode == 2 and process.stdout == ""
+    assert f"bh8 serve: object {spec!r}: " in process.stderr and message in process.stderr
+    assert "Traceback" not in process.stderr
