@@ -425,6 +425,8 @@ class SB3Policy:
             raise PolicyFileError(f"{str(path)!r}: unsupported algorithm {name!r}")
         candidates = [algorithms[name]] if name else [PPO, SAC]
         try:
+            if Path(path).stat().st_size > POLICY_FILE_LIMIT_BYTES:
+                raise PolicyFileError(f"{str(path)!r} is larger than {POLICY_FILE_LIMIT_BYTES >> 20} MB: not a policy")
             raw = Path(path).read_bytes()
         except OSError as error:
             raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None

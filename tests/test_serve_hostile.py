@@ -121,6 +121,34 @@ def test_a_loop_flood_blocks_the_writer_and_memory_stays_bounded(tmp_path):
         link.close()
 
 
+def test_a_client_reading_during_a_flood_gets_its_feedback_blocks(tmp_path):
+    """While a writer floods control blocks, the feedback blocks (SPEC.md §5: "*" + data) flow to a
+    client that reads: the server writes its output between slices of a run. It used to hold all
+    output until the firmware went idle, which a flood never lets happen."""
+    import threading
+
+    link = PtyLink(tmp_path / "store")
+    try:
+        assert link.lines("HI", timeout=60) == []
+        link.write(b"GSLOOP\r")
+        assert link.read_until(b"*", timeout=10) == b"GSLOOP*"
+        fd = link.port.fileno()
+        writer = os.dup(fd)
+        os.set_blocking(writer, False)
+        flooding = threading.Thread(target=_flood, args=(writer, b"C" + b"\0" * 8, 3.0), daemon=True)
+        flooding.start()
+        received = bytearray()
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            received += link.port.read(4096)
+        assert flooding.is_alive()  # all of that arrived while the writer was still flooding
+        assert received.count(b"*") >= 50, f"{len(received)} bytes of feedback in 2 s"
+        flooding.join(timeout=30)
+        os.close(writer)
+    finally:
+        link.close()
+
+
 def test_a_paced_server_takes_a_flood_at_the_line_rate(tmp_path):
     """--realtime: the hand's time is the wall clock, so once the pty and the server's buffer are
     full the server takes at most BAUD/10 bytes a second (9600 baud: 960 B/s, SPEC.md §6); the
