@@ -169,6 +169,7 @@ def test_user_object_files(tmp_path, client):
         (dict(kind="box", size=(0.05, 0.05, 0.05), friction=float("nan")), "friction"),
         (dict(kind="capsule", size=(0.06, 0.04)), "length"),
         (dict(kind="mesh", path="x.obj", mass=None), "mass"),
+        (dict(kind="sphere", size=(0.05,), mass=None), "mass"),  # found by the fuzz: createMultiBody(None) raised TypeError
     ],
 )
 def test_invalid_specs_raise(kwargs, message):

@@ -98,8 +98,8 @@ class ObjectSpec:
         low, high = OBJECT_MASS_RANGE_KG
         if self.mass is not None and not (np.isfinite(self.mass) and low <= self.mass <= high):
             raise ValueError(f"object mass must be {low:g} to {high:g} kg, got {self.mass!r}")
-        if self.kind == "mesh" and self.mass is None:
-            raise ValueError("a mesh object needs a mass (kg)")
+        if self.kind != "urdf" and self.mass is None:  # only a URDF carries its own
+            raise ValueError(f"a {self.kind} object needs a mass (kg)")
         if self.friction is not None and not (np.isfinite(self.friction) and 0 <= self.friction <= OBJECT_FRICTION_MAX):
             raise ValueError(f"object friction must be 0 to {OBJECT_FRICTION_MAX:g}, got {self.friction!r}")
 
