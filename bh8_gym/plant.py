@@ -921,6 +921,8 @@ class HandPlant:
         the axis along z; "sphere": size = radius; "urdf": `path` loaded with globalScaling `scale`
         (its own masses); "mesh": `path` (OBJ/STL) scaled by `scale`, with `mass` (convex hull for
         collision). `fixed` makes it immovable (mass 0). `friction` defaults to params.object_friction.
+        PlantError for a value outside the OBJECT_* bounds or a mesh PyBullet cannot read safely
+        (`bh8_gym.meshes`), before PyBullet sees it.
         """
         cid = self._client
         if kind not in OBJECT_KINDS:
