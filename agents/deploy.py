@@ -25,7 +25,11 @@ Every control and feedback block is logged as one JSONL line (hex bytes, cycle, 
 of the host's monotonic clock, for intervals between records).
 The arm phase in the observation follows the env's ArmSchedule from the first control block:
 the robot arm carrying the hand must run the same grasp/lift/hold schedule.
-Policies trained with privileged (simulation-only) observations are refused.
+Policies trained with privileged (simulation-only) observations are refused, and so is a policy
+file that is damaged (an .npz whose layers do not chain) before the port is opened. An SB3 .zip
+is loaded without unpickling anything (`--trust-file` allows it); its pickle-free export beside
+it (`bh8 export`'s `MODEL.npz`, not older than the .zip) is deployed instead when there is one.
+A policy that fails mid-run (raises) is a stop like a safety limit, with exit status 2.
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import VALID_BAUD_RATES
 from bh8_gym.envs.wrappers import unit_to_bytes
@@ -69,6 +73,10 @@ class DeployError(RuntimeError):
 
 class SafetyStop(Exception):
     """A safety limit tripped; the message names the limit and the reading."""
+
+
+class PolicyFailure(Exception):
+    """The policy raised instead of giving an action (the message names the error)."""
 
 
 def check_deployable(policy, env) -> None:
@@ -117,6 +125,7 @@ class Deployment:
         self.blocks = 0  # blocks exchanged: the "A" block is cycle 0 in the log, policy cycle k is cycle k
         self.policy_cycles = 0
         self.hand_error = None  # the port or hand failure that ended the run (BH8Error), if one did
+        self.policy_error = None  # the policy's failure that ended the run (PolicyFailure), if one did
         self.safe_exit_error = None  # why finish() could not leave the hand safe (BH8Error), if it could not
         self._stop_request = None  # set by a signal handler: why to stop at the next cycle boundary
         self.found_baud = hand.baudrate
@@ -187,7 +196,10 @@ class Deployment:
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed)
                 while self.policy_cycles < cycles and self._stop_request is None:
                     self._check_limits(feedback)
-                    unit, _ = self.policy.predict(observation, deterministic=True)
+                    try:
+                        unit, _ = self.policy.predict(observation, deterministic=True)
+                    except Exception as error:  # the hand still gets the stop block, ^C and exit action
+                        raise PolicyFailure(f"{type(error).__name__}: {error}") from error
                     if not np.all(np.isfinite(unit)):
                         raise SafetyStop(f"the policy's action {np.asarray(unit).tolist()} is not finite")
                     unit_to_bytes(unit, self._low, self._high, out=self._action)
@@ -203,6 +215,9 @@ class Deployment:
                     reason = self._stop_request
             except SafetyStop as stop:
                 reason = f"safety stop: {stop}"
+            except PolicyFailure as failure:
+                self.policy_error = failure
+                reason = f"policy error at cycle {self.blocks}: {failure}"
             except KeyboardInterrupt:
                 reason = "interrupted (Ctrl-C)"
             except BH8Error as error:
@@ -321,7 +336,9 @@ exit status:
   0    the cycles ran; the hand was left safe
   1    the port or the hand failed (connecting, in the setup or mid-run: the stop record in the log
        names the cycle), or the safe-exit commands could not be sent
-  2    usage error: a bad option value, an unwritable log, or a policy deploy refuses
+  2    usage error: a bad option value, an unwritable log, or a policy deploy refuses (a damaged or
+       privileged policy file, before the port is opened; or one that fails mid-run: the hand is
+       left safe and the stop record names the cycle)
   3    stopped early, safely: a safety limit, a non-finite policy output, Ctrl-C, SIGTERM or SIGHUP
   130  Ctrl-C while connecting or in the setup, before the first block (in the setup: ^C to the
        hand, which stops HI, and the rate switched back)
@@ -353,6 +370,25 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "default: %(default)s")
     parser.add_argument("--on-exit", choices=EXIT_ACTIONS, default="GT",
                         help="after leaving LOOP: GT fingers off (default), T all motors off, none")
+    add_trust_argument(parser)
+
+
+def preferred_policy_file(path: Path, trust: bool) -> Path:
+    """The file to deploy for --policy `path`: an SB3 .zip's pickle-free export beside it
+    (`bh8 export`'s MODEL.npz, not older than the .zip) when there is one and the .zip is not
+    trusted; else `path`. Says so on stderr when it takes the export."""
+    if path.suffix != ".zip" or trust:
+        return path
+    export = path.with_suffix(".npz")
+    try:
+        fresh = export.is_file() and export.stat().st_mtime >= path.stat().st_mtime
+    except OSError:
+        fresh = False
+    if fresh:
+        print(f"bh8 deploy: deploying {str(export)!r}, the pickle-free export of {str(path)!r} "
+              "(--trust-file deploys the .zip itself)", file=sys.stderr)
+        return export
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -360,7 +396,7 @@ def run(args: argparse.Namespace) -> int:
     from bh8_gym.client import BarrettHand
 
     try:
-        policy = load_policy(args.policy)
+        policy = load_policy(preferred_policy_file(args.policy, args.trust_file), trust=args.trust_file)
         env_id = policy.metadata.get("env_id")
         if env_id is None:
             raise DeployError(f"{str(args.policy)!r} does not name its environment; export it with `bh8 export`")
@@ -405,7 +441,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     finally:
         env.close()
-    failed = deployment.hand_error is not None or deployment.safe_exit_error is not None
+    failed = (deployment.hand_error is not None or deployment.safe_exit_error is not None
+              or deployment.policy_error is not None)
     print(f"bh8 deploy: {deployment.policy_cycles} policy cycles, stopped: {reason}; log in {args.log}",
           file=sys.stderr if failed else sys.stdout)
     if deployment.safe_exit_error is not None:
@@ -415,6 +452,8 @@ def run(args: argparse.Namespace) -> int:
     if deployment.baud_error is not None:
         print(f"bh8 deploy: the hand stays at {env.unwrapped.baud} baud (switching back to {args.baud} failed: "
               f"{deployment.baud_error}); connect with --baud {env.unwrapped.baud}", file=sys.stderr)
-    if failed:
+    if deployment.hand_error is not None or deployment.safe_exit_error is not None:
         return 1
+    if deployment.policy_error is not None:
+        return 2  # a bad policy, found mid-run: the hand was left safe
     return 0 if reason == "done" else 3

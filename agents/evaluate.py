@@ -29,6 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from bh8_gym.agents.policy_file import add_trust_argument
 from bh8_gym.cli import integer_argument, json_object_argument
 
 # 95% two-sided normal quantile
@@ -338,6 +339,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\' '
                              "(default: none)")
     parser.add_argument("--out", type=Path, default=None, help="report directory (default: print only)")
+    add_trust_argument(parser)
     parser.add_argument("--curve", type=Path, default=None,
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
     parser.add_argument("--gif-episodes", type=int, default=2,
@@ -375,7 +377,7 @@ def run(args: argparse.Namespace) -> int:
     policy, baseline, metadata = None, None, {}
     try:
         if args.policy is not None:
-            policy = load_policy(args.policy)
+            policy = load_policy(args.policy, trust=args.trust_file)
             metadata = policy.metadata
         env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
         if metadata.get("env_id") and env_id != metadata["env_id"]:

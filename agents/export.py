@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError
+from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, add_trust_argument
 
 # float32 torch against float64 numpy on a few-layer MLP: differences are ~1e-6; 1e-4 leaves margin
 DEFAULT_TOLERANCE = 1e-4
@@ -63,6 +63,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="random observations on which numpy and SB3 actions are compared (0: skip; default %(default)s)")
     parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
                         help="largest accepted |SB3 - numpy| action difference (default %(default)s)")
+    add_trust_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not args.model.exists():
             raise FileNotFoundError(f"model {str(args.model)!r} does not exist")
-        sb3_policy = SB3Policy(args.model)
+        sb3_policy = SB3Policy(args.model, trust=args.trust_file)
         check_run_metadata(sb3_policy, args.model)
         metadata = {key: sb3_policy.metadata[key] for key in ("env_id", "env_kwargs", "eval_env_kwargs", "privileged")
                     if key in sb3_policy.metadata}

@@ -8,12 +8,23 @@ space bounds and how the network's output becomes an action ("clip" for PPO's Ga
 trained on privileged observations) is one JSON string, so `np.load(allow_pickle=False)` reads
 every entry: the file carries no code.
 
+An SB3 `.zip` is another matter: its `data` JSON stores every setting that is not plain JSON
+(policy class, spaces, schedules, buffer classes) as a cloudpickle, and SB3's loader unpickles
+them, which runs whatever code the file carries. `SB3Policy` therefore never lets SB3 unpickle
+anything unless the caller trusts the file (`trust=True`, the commands' `--trust-file`): each
+pickled entry is replaced by a stand-in rebuilt from the plain JSON SB3 writes beside it
+(`SB3_STAND_INS`: the policy class and torch classes from an allowlist, Box spaces from their
+bounds, schedules by constants, which prediction does not use), and a file carrying any other
+pickled entry is refused. The weights are read by torch with `weights_only=True` either way.
+
 This module imports only numpy at import time; `export_sb3_policy` imports torch lazily.
 """
 from __future__ import annotations
 
+import io
 import json
 import os
+import re
 import tempfile
 import zipfile
 from pathlib import Path
@@ -22,6 +33,11 @@ from typing import Any, BinaryIO, Callable
 import numpy as np
 
 FORMAT = "bh8-numpy-policy/1"
+# Our bounds on a policy file (an exported MLP is KBs to a few MB): past them it is refused unread,
+# so a zip bomb cannot exhaust memory.
+POLICY_FILE_LIMIT_BYTES = 1 << 30
+SB3_DATA_LIMIT_BYTES = 16 << 20  # the `data` JSON of an SB3 .zip
+MAX_LAYERS = 64
 
 _ACTIVATIONS = {
     "tanh": np.tanh,
@@ -76,6 +92,10 @@ class NumpyPolicy:
             if self.path.is_file() and not zipfile.is_zipfile(self.path):  # np.load would try to unpickle it
                 raise PolicyFileError(f"{str(self.path)!r} is not an .npz file (truncated, or something else); "
                                       "export the policy again")
+            with zipfile.ZipFile(self.path) as archive:
+                if sum(member.file_size for member in archive.infolist()) > POLICY_FILE_LIMIT_BYTES:
+                    raise PolicyFileError(f"{str(self.path)!r} unpacks to more than {POLICY_FILE_LIMIT_BYTES >> 20} MB: "
+                                          "not an exported policy")
             with np.load(self.path, allow_pickle=False) as data:
                 arrays = {name: data[name] for name in data.files}
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
@@ -91,7 +111,11 @@ class NumpyPolicy:
 
     def _read(self, arrays: dict[str, np.ndarray]) -> None:
         self.metadata: dict[str, Any] = json.loads(str(arrays["metadata"]))
-        n_layers = int(self.metadata["n_layers"])
+        if not isinstance(self.metadata, dict):
+            raise PolicyFileError(f"{str(self.path)!r}: its metadata is not a JSON object")
+        n_layers = self.metadata["n_layers"]
+        if not (isinstance(n_layers, int) and not isinstance(n_layers, bool) and 1 <= n_layers <= MAX_LAYERS):
+            raise PolicyFileError(f"{str(self.path)!r}: n_layers must be 1..{MAX_LAYERS}, got {n_layers!r}")
         self.weights = [arrays[f"layer{i}_weight"].astype(np.float64) for i in range(n_layers)]
         self.biases = [arrays[f"layer{i}_bias"].astype(np.float64) for i in range(n_layers)]
         activation = self.metadata["activation"]
@@ -106,8 +130,35 @@ class NumpyPolicy:
         self.obs_clip = float(arrays["obs_clip"])
         self.action_low = arrays["action_low"].astype(np.float64)
         self.action_high = arrays["action_high"].astype(np.float64)
+        self._check_shapes()
         self.observation_dim = self.weights[0].shape[1]
         self.action_dim = self.weights[-1].shape[0]
+
+    def _check_shapes(self) -> None:
+        """The layers chain (each takes what the one before gives), the normalisation and action
+        bounds fit the ends, and every number is finite: a file that fails here would fail (or
+        act wildly) at its first prediction, after a deploy had already set up the hand."""
+        def bad(what: str) -> PolicyFileError:
+            return PolicyFileError(f"{str(self.path)!r} is damaged: {what}; export it again")
+
+        width = None
+        for index, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            if weight.ndim != 2 or bias.shape != (weight.shape[0],) or 0 in weight.shape:
+                raise bad(f"layer {index} has weights {weight.shape} and biases {bias.shape}")
+            if width is not None and weight.shape[1] != width:
+                raise bad(f"layer {index} takes {weight.shape[1]} inputs but layer {index - 1} gives {width}")
+            width = weight.shape[0]
+        inputs = self.weights[0].shape[1]
+        for name, array, size in (("obs_mean", self.obs_mean, inputs), ("obs_var", self.obs_std, inputs),
+                                  ("action_low", self.action_low, width), ("action_high", self.action_high, width)):
+            if array.shape != (size,):
+                raise bad(f"{name} has shape {array.shape}, the network's {'inputs' if size == inputs else 'outputs'} "
+                          f"({size},)")
+        numbers = (*self.weights, *self.biases, self.obs_mean, self.obs_std, self.action_low, self.action_high)
+        if not all(np.all(np.isfinite(array)) for array in numbers) or not np.all(self.obs_std > 0.0):
+            raise bad("a weight, bias, normalisation or bound is not a finite number (or a variance is not positive)")
+        if not np.all(self.action_low <= self.action_high) or not self.obs_clip > 0.0:
+            raise bad("action_low exceeds action_high, or obs_clip is not positive")
 
     @property
     def privileged(self) -> bool:
@@ -253,10 +304,117 @@ def find_run_metadata(model_path: Path) -> dict:
     return {}
 
 
-class SB3Policy:
-    """An SB3 model with the same `predict` and `metadata` as `NumpyPolicy` (needs torch)."""
+_CLASS_REPR = re.compile(r"<class '([\w.]+)'>")
+_INIT_OF = re.compile(r"<function (\w+)\.__init__ ")
+# Pickled entries of an SB3 `data` JSON that prediction does not use: a constant stands in.
+_SCHEDULE_KEYS = ("learning_rate", "lr_schedule", "clip_range", "clip_range_vf")
+# Pickled entries SB3 replaces with its default when None (the buffer classes), converts
+# (train_freq), or keeps only for training: the last observations, episode buffers, action noise.
+_DEFAULTED_KEYS = {"rollout_buffer_class": None, "replay_buffer_class": None, "train_freq": (1, "step"),
+                   "_last_obs": None, "_last_episode_starts": None, "_last_original_obs": None,
+                   "ep_info_buffer": None, "ep_success_buffer": None, "action_noise": None}
+SB3_STAND_INS = ("policy_class", "policy_kwargs", "observation_space", "action_space", *_SCHEDULE_KEYS, *_DEFAULTED_KEYS)
 
-    def __init__(self, path: Path, device: str = "cpu"):
+
+def _allowed_classes() -> dict[str, type]:
+    """Classes a policy's settings may name (module.qualname as SB3's JSON prints them)."""
+    import torch
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from stable_baselines3.common.torch_layers import FlattenExtractor
+    from stable_baselines3.sac.policies import SACPolicy
+
+    from bh8_gym.agents.asymmetric import AsymmetricActorCriticPolicy
+
+    classes = [ActorCriticPolicy, SACPolicy, AsymmetricActorCriticPolicy, FlattenExtractor, torch.nn.Tanh,
+               torch.nn.ReLU, torch.nn.ELU, torch.nn.LeakyReLU, torch.nn.SiLU, torch.nn.GELU, torch.optim.Adam,
+               torch.optim.AdamW, torch.optim.RMSprop, torch.optim.SGD]
+    return {f"{cls.__module__}.{cls.__qualname__}": cls for cls in classes}
+
+
+def _stand_ins(raw: bytes, path: Path) -> dict[str, Any]:
+    """For an SB3 .zip's bytes: a stand-in for every pickled entry of its `data` JSON, so that SB3
+    unpickles nothing (`custom_objects`). PolicyFileError for an entry that has none."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(raw)) as archive:
+            if "data" not in archive.namelist():
+                return {}  # not an SB3 model: SB3's own error says so
+            with archive.open("data") as member:
+                text = member.read(SB3_DATA_LIMIT_BYTES + 1)
+        if len(text) > SB3_DATA_LIMIT_BYTES:
+            raise PolicyFileError(f"{str(path)!r}: its data is larger than {SB3_DATA_LIMIT_BYTES >> 20} MB")
+        data = json.loads(text)
+    except (zipfile.BadZipFile, EOFError, ValueError, RecursionError) as error:
+        raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
+    if not isinstance(data, dict):
+        raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: its data is not a JSON object")
+    pickled = {key: value for key, value in data.items() if isinstance(value, dict) and ":serialized:" in value}
+    unknown = sorted(set(pickled) - set(SB3_STAND_INS))
+    if unknown:
+        raise PolicyFileError(_untrusted(path, f"pickled Python objects in {unknown}, which only unpickling can rebuild"))
+    classes = _allowed_classes()
+    stand_ins: dict[str, Any] = {}
+    for key, entry in pickled.items():
+        if key in _SCHEDULE_KEYS:
+            from stable_baselines3.common.utils import get_schedule_fn
+
+            stand_ins[key] = get_schedule_fn(0.0)
+        elif key in _DEFAULTED_KEYS:
+            stand_ins[key] = _DEFAULTED_KEYS[key]
+        elif key == "policy_class":
+            found = _INIT_OF.match(str(entry.get("__init__", "")))
+            name = f"{entry.get('__module__')}.{found.group(1) if found else '?'}"
+            if name not in classes:
+                raise PolicyFileError(_untrusted(path, f"the policy class {name}, which is not one bh8-gym trains"))
+            stand_ins[key] = classes[name]
+        elif key == "policy_kwargs":
+            stand_ins[key] = {name: _plain_setting(value, classes, path) for name, value in entry.items()
+                              if not name.startswith(":")}
+        else:  # observation_space, action_space
+            stand_ins[key] = _box_from_json(key, entry, path)
+    return stand_ins
+
+
+def _plain_setting(value, classes: dict[str, type], path: Path):
+    """A policy_kwargs item as SB3's JSON shows it: JSON as is; "<class 'x.Y'>" from the allowlist."""
+    if isinstance(value, str):
+        found = _CLASS_REPR.fullmatch(value)
+        if found:
+            if found.group(1) not in classes:
+                raise PolicyFileError(_untrusted(path, f"the class {found.group(1)} in its policy_kwargs"))
+            return classes[found.group(1)]
+    return value
+
+
+def _box_from_json(key: str, entry: dict, path: Path):
+    """A gymnasium Box from the plain fields SB3 writes beside a pickled one (dtype, shape, bounds)."""
+    import gymnasium as gym
+
+    def numbers(text) -> np.ndarray:
+        if not isinstance(text, str) or "..." in text:
+            raise ValueError
+        return np.array([float(v) for v in text.replace("[", " ").replace("]", " ").split()])
+
+    try:
+        if entry.get(":type:") != "<class 'gymnasium.spaces.box.Box'>":
+            raise ValueError
+        shape = tuple(int(v) for v in entry["_shape"])
+        low, high = numbers(entry["low"]).reshape(shape), numbers(entry["high"]).reshape(shape)
+        return gym.spaces.Box(low, high, shape=shape, dtype=np.dtype(entry["dtype"]))
+    except (KeyError, TypeError, ValueError):
+        raise PolicyFileError(_untrusted(path, f"an {key} that is not a Box bh8-gym can rebuild")) from None
+
+
+def _untrusted(path: Path, what: str) -> str:
+    return (f"{str(path)!r} carries {what}. Unpickling runs whatever code the file holds: pass --trust-file "
+            "(trust=True) only for a file you made or trust, or deploy its pickle-free export (bh8 export)")
+
+
+class SB3Policy:
+    """An SB3 model with the same `predict` and `metadata` as `NumpyPolicy` (needs torch).
+
+    Unless `trust`, SB3 unpickles nothing from the file (module docstring: stand-ins)."""
+
+    def __init__(self, path: Path, device: str = "cpu", trust: bool = False):
         from stable_baselines3 import PPO, SAC
 
         algorithms = {"PPO": PPO, "SAC": SAC}
@@ -266,10 +424,17 @@ class SB3Policy:
         if name is not None and name not in algorithms:
             raise PolicyFileError(f"{str(path)!r}: unsupported algorithm {name!r}")
         candidates = [algorithms[name]] if name else [PPO, SAC]
+        try:
+            if Path(path).stat().st_size > POLICY_FILE_LIMIT_BYTES:
+                raise PolicyFileError(f"{str(path)!r} is larger than {POLICY_FILE_LIMIT_BYTES >> 20} MB: not a policy")
+            raw = Path(path).read_bytes()
+        except OSError as error:
+            raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
+        custom_objects = None if trust else _stand_ins(raw, Path(path))
         errors = []
         for algorithm in candidates:
             try:
-                self.model = algorithm.load(path, device=device)
+                self.model = algorithm.load(io.BytesIO(raw), device=device, custom_objects=custom_objects)
                 break
             # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model);
             # AttributeError: a zip without its policy.pth
@@ -300,10 +465,20 @@ class SB3Policy:
             self.model.policy.reset_noise()
 
 
-def load_policy(path: str | os.PathLike):
+def add_trust_argument(parser) -> None:
+    """`--trust-file` of the commands that load policies (bh8 eval, export, deploy)."""
+    parser.add_argument(
+        "--trust-file", action="store_true",
+        help="let SB3 unpickle the Python objects an SB3 .zip carries, which runs whatever code is in them: "
+             "only for a file you made or trust (default: never; the known settings are rebuilt without "
+             "unpickling and a .zip carrying anything else is refused; an .npz never holds code)",
+    )
+
+
+def load_policy(path: str | os.PathLike, trust: bool = False):
     """A policy with `predict(obs, deterministic=True)` and `metadata` from an .npz or an SB3 .zip.
 
-    Only SB3 files need torch (imported here, lazily).
+    Only SB3 files need torch (imported here, lazily); they are unpickled only with `trust`.
     """
     path = Path(path)
     if not path.exists():
@@ -311,5 +486,5 @@ def load_policy(path: str | os.PathLike):
     if path.suffix == ".npz":
         return NumpyPolicy(path)
     if path.suffix == ".zip":
-        return SB3Policy(path)
+        return SB3Policy(path, trust=trust)
     raise PolicyFileError(f"policy file {str(path)!r}: expected an exported .npz or an SB3 .zip")

@@ -30,7 +30,7 @@ except ImportError:  # Windows
     _TermiosError = OSError
 
 from bh8_gym.realtime_codec import ACK, HEADER_EXIT, LoopLayout, MotorFlags
-from bh8_gym.status import BH8Error, HandError, HandTimeout, ProtocolError
+from bh8_gym.status import BH8Error, HandError, HandTimeout, ProtocolError, parse_status
 
 PROMPT = b"=> "
 CR = b"\r"
@@ -204,11 +204,12 @@ def _split_lines(body: bytes) -> list[str]:
 
 
 def _error_code(lines: list[str]) -> int | None:
-    """The status sum when the reply is an error (its first line is "ERR <n>", SPEC.md §2)."""
+    """The status sum when the reply is an error (its first line is "ERR <n>", SPEC.md §2);
+    ProtocolError when n is no status sum."""
     if lines:
         found = _ERR_LINE.match(lines[0].strip())
         if found:
-            return int(found.group(1))
+            return parse_status(found.group(1))
     return None
 
 
@@ -542,7 +543,11 @@ class BarrettHand:
 
     def _checked(self, line: str, budget_s: float | None = None) -> list[str]:
         lines = self._transact(line, budget_s)
-        code = _error_code(lines)
+        try:
+            code = _error_code(lines)
+        except ProtocolError:
+            self._needs_resync = True
+            raise
         if code is not None:
             raise HandError(code, line)
         return lines
@@ -867,7 +872,10 @@ class BarrettHand:
             reply = self._read_until(PROMPT, self.timeout, what)
         except HandTimeout:
             raise ProtocolError(f"{what}: expected '*', got {bytes(self._rx)!r}") from None
-        code = _error_code(_split_lines(reply[: -len(PROMPT)]))
+        try:
+            code = _error_code(_split_lines(reply[: -len(PROMPT)]))
+        except ProtocolError:
+            code = None
         if code is None or not reply.startswith(LINE_END):
             self._needs_resync = True
             raise ProtocolError(f"{what}: expected '*' or an ERR line, got {reply!r}")

@@ -34,6 +34,9 @@ constant below or documented here):
 - Stall (§5.5 case 1): a driven motor that has not moved more than `STALL_DISTANCE_COUNTS` for
   TSTOP ms (at least `MIN_STALL_WINDOW_MS`) terminates; a profile move whose motor keeps up with
   its profile is not stalled (at its start the profile has not moved that far yet).
+- ACCEL 0 (in range, §5.3.4): the HCTL's trapezoid (§9.2.1) cannot accelerate, so a position move
+  never leaves its start; the motor, held at rest, stalls and terminates TSTOP ms later (§5.5
+  case 1): C and O answer without error, M/HOME/IO/IC with ERR 16.
 - Strain-gauge termination (§5.5 case 2) compares the raw gauge value; SGFLIP only changes what is
   sent to the host (FGET SG, LFS), as §5.3.4 says.
 - Over-temperature (§5.4.1 OTEMP): checked when a motor command (HI HOME M IO IC C O TC TO LOOP)
@@ -329,6 +332,11 @@ class Firmware:
         return self._loop_layout is not None
 
     @property
+    def pending_input(self) -> int:
+        """Bytes written and not yet consumed (a server reads no more while this is high)."""
+        return len(self._input)
+
+    @property
     def loop_layout(self) -> LoopLayout | None:
         """The RealTime block layout while in LOOP mode, else None."""
         return self._loop_layout
@@ -460,7 +468,11 @@ class Firmware:
     def _save(self, motors=(), global_values: bool = False) -> None:
         """One store write: the counters, plus the parameter sets of `motors` and/or the globals."""
         uptime = self._uptime_seconds()
-        self.store.save((dict(zip(MOTORS, self._odometer)), self._update_peak_temperature(), uptime),
+        try:
+            peak = self._update_peak_temperature()
+        except ValueError:  # a NaN temperature (the physics failed): the counters are saved all the same
+            peak = self._peak_temperature
+        self.store.save((dict(zip(MOTORS, self._odometer)), peak, uptime),
                         motors={m: self._motor_values[m] for m in motors},
                         global_values=self._globals if global_values else None)
         self._uptime_base = uptime
@@ -811,8 +823,10 @@ class Firmware:
     def _on_profile(channel, t: float, position: float) -> bool:
         """A profile move still running with its motor keeping up: not stalled (§5.5 case 1 is an
         obstacle stopping the motion), however short TSTOP; at the start the profile has not yet
-        moved STALL_DISTANCE_COUNTS. Once the profile has ended, a motor at rest stalls as usual."""
-        return not channel.profile_done(t) and abs(channel.profile(t)[0] - position) <= STALL_DISTANCE_COUNTS
+        moved STALL_DISTANCE_COUNTS. Once the profile has ended, a motor at rest stalls as usual,
+        and so does one whose profile never moves (ACCEL 0): it ends TSTOP ms later."""
+        return (not channel.profile_frozen and not channel.profile_done(t)
+                and abs(channel.profile(t)[0] - position) <= STALL_DISTANCE_COUNTS)
 
     def _position(self, m: int) -> float:
         """The HCTL position of motor m in counts (float)."""

@@ -138,6 +138,12 @@ class MotorChannel:
         """The position a POSITION move ends at (HOLD: the set point)."""
         return self.set_point if self.mode == HOLD else self._target
 
+    @property
+    def profile_frozen(self) -> bool:
+        """True for a POSITION move whose trapezoid cannot leave its start: ACCEL 0 (§5.3.4 allows
+        it) gives the profile generator no acceleration, so the motor is held where it was."""
+        return self.mode == POSITION and self._accel <= 0.0 and self._t_total > 0.0
+
     def profile_done(self, time: float) -> bool:
         """True when the POSITION profile has reached its target (always True outside POSITION)."""
         return self.mode != POSITION or time - self._t0 >= self._t_total

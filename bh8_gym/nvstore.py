@@ -8,9 +8,11 @@ uptime UPSECS and the serial number SN.
 One JSON file, `nvstore.json`, written atomically: a temporary file in the same directory, fsync,
 `os.replace`, then fsync of the directory, so a crash mid-write leaves the old or the new file,
 never a torn one (SPEC.md §3). One command's save (FSAVE of several motors with the counters) is
-one write. A bad value in the file falls back to its factory default. A file that cannot be read
-at all (corrupt, unreadable, another format) is set aside as `nvstore.json.unreadable-<time>`, never
-overwritten, with a `StoreWarning`, and the hand starts from factory values.
+one write. A bad value in the file (out of range, or of the wrong JSON type: `true` is not a
+number) falls back to its factory default. A file that cannot be read at all (corrupt, unreadable,
+another format, nested too deep for the parser, larger than `STORE_SIZE_LIMIT`) is set aside as
+`nvstore.json.unreadable-<time>`, never overwritten, with a `StoreWarning`, and the hand starts
+from factory values.
 
 One simulated hand at a time owns a directory: the first load takes an exclusive lock
 (`StoreError` if another process or store holds it) until `close()`. A save that fails later (disk
@@ -21,8 +23,10 @@ memory only (nothing survives the process): handy for environments that reset by
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
+import stat
 import tempfile
 import time
 import warnings
@@ -56,6 +60,9 @@ class StoreError(OSError):
 class StoreWarning(UserWarning):
     """A save failed (the values stay in memory), or an unreadable store file was set aside."""
 FORMAT_VERSION = 1
+# Our bound on the file read: a store is about 3 KB; anything much larger is not one of ours, and
+# reading it whole could exhaust memory.
+STORE_SIZE_LIMIT = 1 << 20
 # Our choice: serial numbers of simulated hands are drawn (seeded) from this range, so two stores
 # made with different seeds look like two different hands. §5.4.2: field upgrades read 0.
 SERIAL_NUMBER_RANGE = (1000, 9999)
@@ -100,9 +107,15 @@ class NVStore:
         keeps the values in memory and warns (StoreWarning)."""
         contents = self._current()
         odometer_counts, peak_temperature, uptime_seconds = counters
-        contents.odometer_counts = {m: float(odometer_counts[m]) for m in MOTORS}
-        contents.peak_temperature = int(peak_temperature)
-        contents.uptime_seconds = float(uptime_seconds)
+        # A counter that is not a finite number (a simulation whose physics failed) keeps its saved
+        # value: these counters are never reset, and the file must stay readable.
+        for m in MOTORS:
+            if _is_finite(odometer_counts[m]):
+                contents.odometer_counts[m] = float(odometer_counts[m])
+        if _is_finite(peak_temperature):
+            contents.peak_temperature = int(peak_temperature)
+        if _is_finite(uptime_seconds):
+            contents.uptime_seconds = float(uptime_seconds)
         for motor, values in (motors or {}).items():
             contents.motors[motor] = dict(values)
         if global_values is not None:
@@ -176,11 +189,11 @@ class NVStore:
         raw = None
         if path.exists():
             try:
-                raw = json.loads(path.read_text(encoding="utf-8"))
-            except (OSError, ValueError) as error:
-                self._set_aside(path, str(error))
+                raw = _read_json(path)
+            except (OSError, ValueError, RecursionError) as error:  # RecursionError: nested too deep
+                self._set_aside(path, "nested too deep" if isinstance(error, RecursionError) else str(error))
             else:
-                if not isinstance(raw, dict) or raw.get("format") != FORMAT_VERSION:
+                if not isinstance(raw, dict) or not _is_integer(raw.get("format")) or raw["format"] != FORMAT_VERSION:
                     found = raw.get("format") if isinstance(raw, dict) else type(raw).__name__
                     self._set_aside(path, f"format {found!r}, this version reads format {FORMAT_VERSION}")
                     raw = None
@@ -206,13 +219,13 @@ class NVStore:
                     if _is_number(value) and 0 <= value <= UINT32_MAX * 1000.0:
                         contents.odometer_counts[m] = float(value)
             ptemp = counters.get("peak_temperature")
-            if isinstance(ptemp, int) and 0 <= ptemp <= 1250:
+            if _is_integer(ptemp) and 0 <= ptemp <= 1250:
                 contents.peak_temperature = ptemp
             upsecs = counters.get("uptime_seconds")
             if _is_number(upsecs) and 0 <= upsecs <= UINT32_MAX:
                 contents.uptime_seconds = float(upsecs)
             serial = counters.get("serial_number")
-            if isinstance(serial, int) and 0 <= serial <= UINT32_MAX:
+            if _is_integer(serial) and 0 <= serial <= UINT32_MAX:
                 contents.serial_number = serial
         return contents
 
@@ -257,8 +270,30 @@ class NVStore:
             os.close(directory_fd)
 
 
+def _read_json(path: Path):
+    """The file's JSON; ValueError if it is not a regular file (a FIFO would block the read, a
+    device never end it), is larger than STORE_SIZE_LIMIT, or is not JSON."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError("not a regular file")
+        data = handle.read(STORE_SIZE_LIMIT + 1)
+    if len(data) > STORE_SIZE_LIMIT:
+        raise ValueError(f"larger than {STORE_SIZE_LIMIT} bytes")
+    return json.loads(data.decode("utf-8"))
+
+
+def _is_integer(value) -> bool:
+    """A JSON integer (bool is an int to Python, but `true` is no count)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value
+
+
+def _is_finite(value) -> bool:
+    return _is_number(value) and math.isfinite(value)
 
 
 def _merge(target: dict[str, int], raw, table) -> None:
@@ -267,7 +302,7 @@ def _merge(target: dict[str, int], raw, table) -> None:
         return
     for name in target:
         value = raw.get(name)
-        if isinstance(value, int) and not isinstance(value, bool) and table[name].accepts(value):
+        if _is_integer(value) and table[name].accepts(value):
             target[name] = value
 
 

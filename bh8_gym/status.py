@@ -39,6 +39,8 @@ STATUS_DESCRIPTIONS = {
     8192: "Overtemperature fault tripped",
     16384: "Cntl-C abort command received",
 }
+# Every Table 3 bit set (32767): the largest status sum a hand can report.
+STATUS_MAX = sum(STATUS_DESCRIPTIONS)
 
 
 def decode_status(code: int) -> list[tuple[int, str]]:
@@ -76,3 +78,14 @@ class HandTimeout(BH8Error):
 
 class ProtocolError(BH8Error):
     """The hand's bytes do not match the protocol (garbage, a truncated or malformed reply)."""
+
+
+def parse_status(digits: str) -> int:
+    """The status sum written as the ASCII `digits` of an "ERR n" line. ProtocolError when it is
+    no Table 3 sum (above STATUS_MAX: a garbled line), checked before int() sees the digits (a
+    5000-digit number is past Python's integer-string limit)."""
+    if not (digits.isascii() and digits.isdigit()) or len(digits.lstrip("0")) > len(str(STATUS_MAX)) \
+            or int(digits) > STATUS_MAX:
+        shown = digits if len(digits) <= 20 else f"{digits[:20]}... ({len(digits)} characters)"
+        raise ProtocolError(f"ERR {shown} is not a status sum of Table 3 (0..{STATUS_MAX}): a garbled reply")
+    return int(digits)

@@ -30,7 +30,7 @@ from bh8_gym.client import (
     BarrettHand,
     HandConnectionError,
 )
-from bh8_gym.status import BH8Error, decode_status
+from bh8_gym.status import BH8Error, ProtocolError, decode_status, parse_status
 
 PROMPT = "=> "
 HISTORY_LENGTH = 1000
@@ -49,7 +49,10 @@ def explain_error(line: str) -> str | None:
     found = _ERR_LINE.match(line)
     if not found:
         return None
-    bits = decode_status(int(found.group(1)))
+    try:
+        bits = decode_status(parse_status(found.group(1)))
+    except ProtocolError as error:
+        return str(error)
     return "; ".join(f"{bit} {text}" for bit, text in bits) or "no status bits"
 
 

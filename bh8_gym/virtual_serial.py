@@ -10,10 +10,19 @@ Two ways to run simulated time (SPEC.md §6):
   its output is written back; a command answers as soon as its simulated motion ends. The line is
   read between slices of `UNPACED_SLICE_S` simulated seconds, so a ^C that arrives while a motion
   runs aborts it at the next slice. An idle server blocks in poll() with no timeout and uses no CPU.
+  A supervisory command still running after `UNPACED_FULL_SPEED_S` simulated seconds (a motion
+  that may never end: a finger jittering against an obstacle never stalls) is paced to the wall
+  clock from then on, so it costs what a paced server costs, not a whole core, until ^C ends it.
 - `--realtime`: simulated time follows the wall clock in slices of `REALTIME_SLICE_S`; bytes are
   fed to the firmware while a motion runs, so ^C (0x03) aborts it with ERR 16384 (§5.5 case 4).
   Idle time between commands costs no simulated time here either (Contract 2), so an idle paced
   server also sleeps in poll().
+
+Input is taken no faster than the line could deliver it: at most BAUD/10 bytes per second of the
+hand's time (simulated time unpaced, where waiting for input costs none, so a waiting firmware may
+take a buffer's worth at once; the wall clock paced), and never more than `INPUT_BUFFER_BYTES`
+ahead of what the firmware has consumed. The rest waits in the pty, whose writer then blocks, as
+a host's writes block on a real serial line: a flood of RealTime blocks cannot grow the server.
 
 The follower stays open in the server for its whole life, so a client may close and reopen the
 device without the server seeing a hang-up and without losing the hand's state.
@@ -59,6 +68,13 @@ REALTIME_BURST_S = 0.02
 REALTIME_MAX_LAG_S = 0.25
 # Without --realtime, simulated seconds a command runs between looks at the line for ^C.
 UNPACED_SLICE_S = 0.25
+# Without --realtime, simulated seconds a supervisory command runs at full speed; past this it is
+# paced to the wall clock. Longer than the motions that end at usual settings (a full close at the
+# slowest MCV takes about 4.4 s), so in practice only runaway motions are slowed.
+UNPACED_FULL_SPEED_S = 10.0
+# Bytes taken from the pty ahead of what the firmware has consumed, as a host serial driver's
+# buffer: past this the server stops reading and the pty's writer blocks (backpressure).
+INPUT_BUFFER_BYTES = 4096
 # Our choice: the longest the never-reset counters (OD, PTEMP, UPSECS) go unsaved after the hand
 # did something; they are "maintained through power failures" (manual §5.3.2, §5.4.2), so a kill
 # of the server loses at most this much.
@@ -264,10 +280,17 @@ class PtyServer:
     """Serves one `Firmware` on a new pty until `stop()`; `device` is the follower's path."""
 
     def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None,
-                 counter_save_interval: float = COUNTER_SAVE_INTERVAL_S):
+                 counter_save_interval: float = COUNTER_SAVE_INTERVAL_S,
+                 full_speed_limit: float = UNPACED_FULL_SPEED_S):
+        from bh8_gym.firmware import BITS_PER_BYTE
+
         self.firmware = firmware
         self.realtime = bool(realtime)
         self.counter_save_interval = float(counter_save_interval)
+        self.full_speed_limit = float(full_speed_limit)
+        self._bits_per_byte = BITS_PER_BYTE
+        self._line_credit = float(INPUT_BUFFER_BYTES)  # bytes the line may deliver now
+        self._line_clock: float | None = None  # the hand's time of the last credit
         self._counters_due: float | None = None  # monotonic time by which the counters must be saved
         self._leader, self._follower, self.device = open_raw_pty()
         self._wake_read, self._wake_write = os.pipe()
@@ -278,7 +301,7 @@ class PtyServer:
         self._poller = select.poll()
         self._poller.register(self._wake_read, select.POLLIN)
         self._poller.register(self._leader, select.POLLIN)
-        self._polling_output = False
+        self._leader_events = select.POLLIN
         self._running_firmware = False
         self.link = None
         if link is not None:
@@ -349,22 +372,46 @@ class PtyServer:
     def _serve_unpaced(self) -> None:
         firmware = self.firmware
         while not self._stopping:
+            # Waiting for input costs no simulated time (Contract 2): the wait stands for any
+            # amount of line time, so the line's buffer is full again.
+            self._line_credit, self._line_clock = float(INPUT_BUFFER_BYTES), firmware.time
             self._wait(self._seconds_to_counter_save())
             self._save_counters_if_due()
             data = self._read_input()
             if data:
                 self._counters_changed()
                 firmware.write(data)
-                self._running_firmware = True
-                # In slices, reading the line between them: a ^C can abort a motion that never
-                # ends (the firmware drops other bytes during a motion, as the hand does).
-                while not firmware.run_until_idle(UNPACED_SLICE_S) and not self._stopping:
-                    more = self._read_input()
-                    if more:
-                        firmware.write(more)
-                self._running_firmware = False
-                self._queue_output(firmware.read())
+                self._run_unpaced()
             self._flush_output()
+
+    def _run_unpaced(self) -> None:
+        """Run the firmware until it waits for input, in slices of UNPACED_SLICE_S, reading the
+        line and writing the output between them: a ^C can abort a motion that never ends (the
+        firmware drops other bytes during a motion, as the hand does), and the feedback of a
+        stream of RealTime blocks flows while it lasts. A supervisory command past the full-speed
+        limit is paced to the wall clock."""
+        firmware = self.firmware
+        started, pace = firmware.time, None
+        self._running_firmware = True
+        try:
+            while not firmware.run_until_idle(UNPACED_SLICE_S) and not self._stopping:
+                self._queue_output(firmware.read())
+                self._flush_output()
+                self._save_counters_if_due()
+                if pace is None and not firmware.in_loop and firmware.time - started > self.full_speed_limit:
+                    pace = (time.monotonic(), firmware.time)
+                while pace is not None and not self._stopping:
+                    ahead = (firmware.time - pace[1]) - (time.monotonic() - pace[0])
+                    if ahead <= 0.0:
+                        break
+                    self._wait(ahead)
+                    self._take_input()
+                    self._flush_output()
+                self._credit_line(firmware.time)
+                self._take_input()
+        finally:
+            self._running_firmware = False
+        self._queue_output(firmware.read())
 
     def _serve_paced(self) -> None:
         firmware = self.firmware
@@ -378,6 +425,7 @@ class PtyServer:
             now = time.monotonic()
             if not active:
                 anchor_wall, anchor_sim = now, firmware.time  # idle time costs no simulated time
+            self._credit_line(now)
             data = self._read_input()
             if data:
                 firmware.write(data)
@@ -408,27 +456,58 @@ class PtyServer:
     # -- pty plumbing ------------------------------------------------------------------------
 
     def _wait(self, timeout_s: float | None) -> None:
-        want_output = bool(self._backlog)
-        if want_output != self._polling_output:
-            self._poller.modify(self._leader, select.POLLIN | (select.POLLOUT if want_output else 0))
-            self._polling_output = want_output
+        """Sleep until input can be taken, output can be written, a stop, or `timeout_s`."""
+        room = self._input_room()
+        if not room and self.realtime and self._line_credit < 1.0:
+            # Input waits for the line's next byte (paced: the wall clock refills the credit).
+            refill = (1.0 - self._line_credit) / self._line_bytes_per_second()
+            timeout_s = refill if timeout_s is None else min(timeout_s, refill)
+        events = (select.POLLIN if room else 0) | (select.POLLOUT if self._backlog else 0)
+        if events != self._leader_events:
+            self._poller.modify(self._leader, events)
+            self._leader_events = events
         self._poller.poll(None if timeout_s is None else timeout_s * 1000.0)
         try:
             os.read(self._wake_read, 64)
         except BlockingIOError:
             pass
 
+    def _line_bytes_per_second(self) -> float:
+        return self.firmware.baud / self._bits_per_byte
+
+    def _credit_line(self, now: float) -> None:
+        """The line delivers BAUD/10 bytes per second of the hand's time `now` (simulated
+        unpaced, the wall clock paced), up to a buffer's worth."""
+        if self._line_clock is not None and now > self._line_clock:
+            self._line_credit = min(float(INPUT_BUFFER_BYTES),
+                                    self._line_credit + (now - self._line_clock) * self._line_bytes_per_second())
+        self._line_clock = now
+
+    def _input_room(self) -> int:
+        """Bytes that may be taken from the pty now: what the line delivered, and no more than the
+        buffer ahead of the firmware."""
+        return max(0, min(int(self._line_credit), INPUT_BUFFER_BYTES - self.firmware.pending_input))
+
+    def _take_input(self) -> None:
+        data = self._read_input()
+        if data:
+            self.firmware.write(data)
+
     def _read_input(self) -> bytes:
+        room = self._input_room()
         chunks = []
-        while True:
+        while room > 0:
             try:
-                chunk = os.read(self._leader, _READ_CHUNK)
+                chunk = os.read(self._leader, min(room, _READ_CHUNK))
             except BlockingIOError:
                 break
             if not chunk:
                 break
             chunks.append(chunk)
-        return b"".join(chunks)
+            room -= len(chunk)
+        data = b"".join(chunks)
+        self._line_credit -= len(data)
+        return data
 
     def _queue_output(self, data: bytes) -> None:
         if data:
@@ -448,9 +527,17 @@ class PtyServer:
 
 # -- the `bh8 serve` subcommand ---------------------------------------------------------------
 
+def _state_directory(text: str) -> Path:
+    """argparse `type=` of --state: an empty path would be "." (the store written into the working
+    directory), so it is refused as bh8sim://?state= refuses it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("needs a directory, got an empty value")
+    return Path(text)
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--state", metavar="DIR", type=Path, default=None,
+        "--state", metavar="DIR", type=_state_directory, default=None,
         help=f"non-volatile store of the simulated hand (default: {default_state_dir()})",
     )
     parser.add_argument(
@@ -581,7 +668,8 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
     """Serve `firmware` on a new pty until SIGINT, SIGTERM or SIGHUP: print the device path as the
     first line of stdout, then `close(firmware)` (default: shut it down, persisting its counters,
     and close its plant). `description` names what is served in the start-up note on stderr.
-    Returns the exit code: 0, or 1 when the pty or the link cannot be made."""
+    Returns the exit code: 0, or 1 when the pty or the link cannot be made or the simulation failed
+    (a step that raised; the counters are still saved)."""
     try:
         server = PtyServer(firmware, realtime=realtime, link=link)
     except OSError as error:
@@ -599,9 +687,17 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
             print(f"bh8 serve: firmware {firmware.profile}{served} on {server.device}{linked}, {mode}{stored}; "
                   "^C to stop", file=sys.stderr, flush=True)
             server.serve_forever()
+    except Exception as error:  # a simulation step that failed: shut down all the same (the counters)
+        failure = error
+    else:
+        failure = None
     finally:
         try:
             close(firmware)
         finally:
             server.close()
+    if failure is not None:
+        print(f"bh8 serve: the simulation failed ({type(failure).__name__}: {failure}); the hand's counters "
+              "were saved", file=sys.stderr)
+        return 1
     return 0

@@ -380,6 +380,25 @@ def test_err_reply_raises_hand_error_with_table_3_bits(scripted):
     assert b"\x03" not in port.written[sent_before:]  # an ERR reply ends at a prompt: nothing to recover
 
 
+@pytest.mark.parametrize("digits", ["9" * 5000, "32768", "0" * 30 + "99999999999"])
+def test_an_err_code_that_is_no_status_sum_is_a_protocol_error(scripted, monkeypatch, digits):
+    """Table 3's bits sum to at most 32767 (§5.1.3): "ERR" with a larger number, such as 5000
+    digits (past Python's integer-string limit: a raw ValueError), is a garbled reply, a
+    ProtocolError, in supervisory mode and in place of RealTime's "*"; the next call works."""
+    bh, hand, _ = scripted
+    execute = hand._execute
+    monkeypatch.setattr(hand, "_execute", lambda line: b"\n\rERR " + digits.encode() + b"\n\r=> ")
+    with pytest.raises(ProtocolError, match="not a status sum of Table 3"):
+        bh.get("P", "1")
+    monkeypatch.setattr(hand, "_execute", execute)
+    assert bh.get("P", "1") == {"P": [1000]}
+    bh.start_loop("G")
+    hand.error_next_block = digits
+    with pytest.raises(ProtocolError):
+        bh.update([1, 1, 1], [5, 5, 5])
+    assert bh.get("P", "2") == {"P": [2000]}
+
+
 def test_reset_checks_banner_after_a_bare_cr(scripted):
     """Barrett's API Reset(): an empty command clears errors, then RESET; the banner names the firmware."""
     bh, hand, _ = scripted

@@ -92,7 +92,7 @@ def test_any_latin1_value_is_a_number_or_err_128(machine, value):
     reply = fw.transact(b"1FSET DP " + value.encode("latin-1") + b"\r")
     assert reply.endswith(b"\n\r=> ")
     text = value.strip(" ")
-    valid = re.fullmatch(r"\+?[0-9]+", text) is not None and int(text) <= 65535
+    valid = re.fullmatch(r"[+-]?[0-9]+", text) is not None and 0 <= int(text) <= 65535  # "-0" is 0
     set_value = fw.transact(b"1FGET DP\r").split(b"\n\r")[1]
     if valid:
         assert b"ERR" not in reply and set_value == str(int(text)).encode()

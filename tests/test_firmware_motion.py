@@ -132,6 +132,24 @@ def test_tstop_delays_stall_termination(fw):
     assert long - short == pytest.approx(0.3, abs=0.02)
 
 
+def test_accel_0_moves_nothing_and_ends_as_a_stall_after_tstop(fw):
+    """§5.3.4 ACCEL accepts 0 (0 to 65,535). §9.2.1: the HCTL-1100's trapezoid accelerates at
+    ACCEL, so at 0 its command position never leaves the start: the motor is held where it is.
+    Not moving, it terminates TSTOP ms later (§5.5 case 1), as any stalled motor: C answers
+    without error (C never reports ERR 16), M with ERR 16 (its goal was not reached, §5.5 case 3).
+    It used to wait for a profile that never ended: GC never answered."""
+    start = values(fw, "GFGET P")
+    assert reply_lines(fw, "GFSET ACCEL 0 TSTOP 200") == []
+    t0 = fw.time
+    assert fw.transact(b"GC\r", max_seconds=5.0) == b"GC\n\r=> "
+    assert fw.time - t0 == pytest.approx(0.2, abs=0.02)
+    assert values(fw, "GFGET P") == pytest.approx(start, abs=5)
+    assert fw.transact(b"GM 5000\r", max_seconds=5.0) == b"GM 5000\n\rERR 16\n\r=> "
+    assert values(fw, "GFGET S") == [16, 16, 16]
+    assert values(fw, "GFGET P") == pytest.approx(start, abs=5)
+    assert reply_lines(fw, "GFSET ACCEL 4") == [] and reply_lines(fw, "GM 5000") == []  # the default moves again
+
+
 @pytest.mark.parametrize("tstop", [0, 2, 5])
 def test_a_tstop_below_a_few_ms_does_not_end_moves_before_they_start(fw, tstop):
     """§5.3.4 TSTOP (0 to 65,535 ms) / §5.5 case 1, an obstacle stopping the motion: a motor at rest

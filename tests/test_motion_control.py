@@ -72,6 +72,9 @@ def test_accel_zero_never_leaves_the_start():
     ch.move(0.0, 100.0, 5000.0, 100 / 16, 0.0, 10)
     assert ch.profile(10.0) == (100.0, 0.0)
     assert not ch.profile_done(10.0)
+    assert ch.profile_frozen  # the firmware lets such a motor stall (§5.5 case 1)
+    ch.move(0.0, 100.0, 5000.0, 100 / 16, 4 / 256, 10)
+    assert not ch.profile_frozen
 
 
 def test_position_law_gain_and_saturation():

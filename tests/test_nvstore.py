@@ -142,3 +142,86 @@ def test_memory_store_writes_nothing(tmp_path):
     store.save(({m: 1.0 for m in (1, 2, 3, 4)}, 300, 1.0))
     assert store.load().peak_temperature == 300
     assert list(tmp_path.iterdir()) == []
+
+
+# -- hostile store files (issue 19) -----------------------------------------------------------
+
+
+def _aside(directory) -> list[str]:
+    return [name for name in store_files(directory) if name.startswith(STORE_FILENAME + ".unreadable-")]
+
+
+def test_a_store_nested_too_deep_for_the_parser_is_set_aside(tmp_path):
+    """JSON nested 200,000 deep makes json.loads raise RecursionError, not ValueError: it is one
+    more unreadable store (SPEC.md §3: set aside with a warning, factory values), not a crash."""
+    (tmp_path / STORE_FILENAME).write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.warns(StoreWarning, match="nested too deep"):
+        contents = loaded_and_closed(tmp_path)
+    assert contents.globals["BAUD"] == 96
+    assert len(_aside(tmp_path)) == 1
+
+
+def test_a_store_larger_than_any_store_is_set_aside_unread(tmp_path):
+    """A store is a few KB; a file past STORE_SIZE_LIMIT is not read whole into memory."""
+    from bh8_gym.nvstore import STORE_SIZE_LIMIT
+
+    (tmp_path / STORE_FILENAME).write_text(json.dumps({"format": 1, "pad": "x" * STORE_SIZE_LIMIT}))
+    with pytest.warns(StoreWarning, match="larger than"):
+        loaded_and_closed(tmp_path)
+    assert len(_aside(tmp_path)) == 1
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX FIFO")
+@pytest.mark.timeout(30)
+def test_a_store_that_is_a_fifo_is_set_aside_without_blocking(tmp_path):
+    """A FIFO in place of nvstore.json would block the read for ever: refused as not a regular file."""
+    os.mkfifo(tmp_path / STORE_FILENAME)
+    with pytest.warns(StoreWarning, match="not a regular file"):
+        loaded_and_closed(tmp_path)
+    assert len(_aside(tmp_path)) == 1
+
+
+def test_values_of_the_wrong_json_type_fall_back_to_their_defaults(tmp_path):
+    """`true` is an int to Python but no count: §5.4.2 SN, PTEMP and the §5.3 parameters are
+    integers, so a boolean in the file is a bad value (its default is used), and PGET SN answers
+    the hand's number, never "True"."""
+    from bh8_gym.firmware import Firmware
+
+    serial_number = loaded_and_closed(tmp_path, seed=5).serial_number
+    raw = json.loads((tmp_path / STORE_FILENAME).read_text())
+    raw["counters"].update(serial_number=True, peak_temperature=True)
+    raw["motors"]["1"]["HOLD"] = True
+    raw["globals"]["LFT"] = True
+    (tmp_path / STORE_FILENAME).write_text(json.dumps(raw))
+    contents = loaded_and_closed(tmp_path, seed=5)
+    assert type(contents.serial_number) is int and contents.serial_number == serial_number  # the seeded draw
+    assert type(contents.peak_temperature) is int and contents.peak_temperature == 0
+    assert type(contents.motors[1]["HOLD"]) is int and type(contents.globals["LFT"]) is int
+    firmware = Firmware(store_dir=tmp_path, seed=5)
+    try:
+        assert firmware.transact(b"PGET SN\r") == b"PGET SN\n\r%d\n\r=> " % serial_number
+    finally:
+        firmware.shutdown()
+    saved = json.loads((tmp_path / STORE_FILENAME).read_text())["counters"]
+    assert saved["serial_number"] == serial_number and type(saved["peak_temperature"]) is int
+
+
+def test_a_format_of_true_is_not_format_1(tmp_path):
+    (tmp_path / STORE_FILENAME).write_text('{"format": true, "counters": {}}')
+    with pytest.warns(StoreWarning, match="format True"):
+        loaded_and_closed(tmp_path)
+    assert len(_aside(tmp_path)) == 1
+
+
+def test_counters_that_are_not_finite_keep_their_saved_values(tmp_path):
+    """§5.3.2 OD, §5.4.2 PTEMP/UPSECS are never reset: a save from a simulation whose physics
+    failed (NaN positions, temperature) keeps the last good values and a readable file."""
+    store = NVStore(tmp_path)
+    store.save(COUNTERS)
+    nan = float("nan")
+    store.save(({1: nan, 2: float("inf"), 3: 7.0, 4: 2.0}, nan, nan))
+    store.close()
+    loaded = loaded_and_closed(tmp_path)
+    assert loaded.odometer_counts == {1: 5000.0, 2: 0.0, 3: 7.0, 4: 2.0}
+    assert loaded.peak_temperature == 512 and loaded.uptime_seconds == 77.5
+    assert "NaN" not in (tmp_path / STORE_FILENAME).read_text()

@@ -5,6 +5,8 @@ inner link 70 mm, outer 50 mm, 2 kg per fingertip).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pybullet
 import pytest
@@ -167,8 +169,180 @@ def test_user_object_files(tmp_path, client):
         (dict(kind="box", size=(0.05, 0.05, 0.05), friction=float("nan")), "friction"),
         (dict(kind="capsule", size=(0.06, 0.04)), "length"),
         (dict(kind="mesh", path="x.obj", mass=None), "mass"),
+        (dict(kind="sphere", size=(0.05,), mass=None), "mass"),  # found by the fuzz: createMultiBody(None) raised TypeError
     ],
 )
 def test_invalid_specs_raise(kwargs, message):
     with pytest.raises(ValueError, match=message):
         ObjectSpec(**kwargs)
+
+
+# -- hostile objects and meshes (issue 19) ------------------------------------------------------
+
+TETRA = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+# Each crashed PyBullet's OBJ reader (SIGSEGV: the whole process died), loaded NaN vertices, or
+# is read differently by it than it looks; bh8_gym.meshes refuses them naming the line.
+BAD_OBJ = {
+    "face index past the vertices": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 999999\n", "line 4: face vertex 999999"),
+    "face before any vertex": ("f 1 2 3\n" + TETRA, "line 1: face vertex 1"),
+    "face index past a C int": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999\n", "not a face vertex"),
+    "negative index past the start": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -9\n", "face vertex -9"),
+    "index 0": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "face vertex 0"),
+    "face of one vertex": ("v 0 0 0\nf 1\n", "at least 3 vertices"),
+    "empty face": ("v 0 0 0\nf\n", "has no faces"),
+    "NaN vertex": ("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "3 decimal numbers"),
+    "vertex past float32": ("v 1e39 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "beyond float32"),
+    "no faces": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "has no faces"),
+    "empty file": ("", "has no faces"),
+    "a line the reader splits": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n# " + "x" * 1100 + " f 1 2 999\nf 1 2 3\n", "longer than 1023"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_OBJ))
+def test_a_bad_obj_is_refused_before_pybullet_reads_it(tmp_path, client, case):
+    """`f 1 2 999999` as an object file made PyBullet segfault (exit 139): meshes are read by a
+    validating reader first, and a bad one is a ValueError naming the file and the line."""
+    text, message = BAD_OBJ[case]
+    mesh = tmp_path / "bad.obj"
+    mesh.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        parse_object_file(f"{mesh}:0.05:0.1")
+    with pytest.raises(ValueError, match=message):  # the loader checks as well (specs made in code)
+        ObjectLoader(client, visuals=False).create(ObjectSpec("mesh", path=str(mesh), scale=0.05), (0, 0, 1), (0, 0, 0, 1))
+
+
+def test_an_env_with_a_crashing_obj_is_a_clear_error_not_a_dead_process(tmp_path):
+    """The issue's attack end to end, in a child process (before the fix it died of SIGSEGV): the
+    env refuses the file at make with a ValueError naming the face."""
+    import subprocess
+    import sys
+
+    mesh = tmp_path / "bad.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 999999\n")
+    script = ("import gymnasium as gym, bh8_gym, sys\n"
+              "try:\n"
+              f"    env = gym.make('BH8Grasp-v0', object_files=[{str(mesh) + ':0.05:0.1'!r}]); env.reset(seed=0)\n"
+              "except ValueError as error:\n"
+              "    print(error); sys.exit(2)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, (result.returncode, result.stderr[-500:])
+    assert "face vertex 999999 is not one of the 3 vertices" in result.stdout
+
+
+def test_binary_stl_is_checked_and_ascii_stl_refused(tmp_path, client):
+    """PyBullet reads binary STL only (84 + 50 n bytes): an ASCII or truncated STL, or NaN
+    vertices, is refused; a good one loads."""
+    import struct
+
+    def stl(triangles, count=None):
+        body = b"".join(struct.pack("<12fH", 0, 0, 1, *[c for v in t for c in v], 0) for t in triangles)
+        return b"\0" * 80 + struct.pack("<I", len(triangles) if count is None else count) + body
+
+    triangle = ((0, 0, 0), (1, 0, 0), (0, 1, 0))
+    good = tmp_path / "good.stl"
+    good.write_bytes(stl([triangle, ((0, 0, 0), (0, 0, 1), (1, 0, 0))]))
+    spec = parse_object_file(f"{good}:0.05:0.1")
+    assert ObjectLoader(client, visuals=False).create(spec, (0, 0, 1), (0, 0, 0, 1)) >= 0
+    for name, data in (("ascii.stl", b"solid x\nfacet normal 0 0 1\nendsolid x\n"),
+                       ("short.stl", stl([triangle], count=5)), ("none.stl", stl([])),
+                       ("nan.stl", stl([((math.nan, 0, 0), (1, 0, 0), (0, 1, 0))]))):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ValueError, match=name):
+            parse_object_file(f"{tmp_path / name}:0.05:0.1")
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(kind="sphere", size=(1e300,)), "each extent must be 0.001 to 2 m"),
+        (dict(kind="box", size=(1e300, 1e300, 1e300)), "each extent must be"),
+        (dict(kind="cylinder", size=(0.04, 1e-5)), "each extent must be"),
+        (dict(kind="box", size=(0.05, 0.05, 0.05), mass=1e300), "mass must be 0.001 to 10 kg"),
+        (dict(kind="box", size=(0.05, 0.05, 0.05), mass=1e-300), "mass must be"),
+        (dict(kind="box", size=(0.05, 0.05, 0.05), friction=1e300), "friction must be 0 to 10"),
+    ],
+)
+def test_object_specs_outside_the_physical_bounds_raise(kwargs, message):
+    """Sizes 1 mm to 2 m, masses 1 g to 10 kg, friction 0 to 10 (bh8_gym.plant's bounds): far
+    outside them PyBullet's solver turns the world to NaN."""
+    with pytest.raises(ValueError, match=message):
+        ObjectSpec(**kwargs)
+
+
+def test_an_object_scaled_by_1e300_is_refused_at_make_not_a_nan_reward(tmp_path):
+    """A mesh or URDF scaled by 1e300 ran an episode returning reward nan with no error: its size
+    at that scale is checked when the env is made (meshes from their vertices, URDFs loaded in a
+    scratch world)."""
+    import gymnasium as gym
+    import pybullet_data
+
+    import bh8_gym  # noqa: F401
+
+    mesh = tmp_path / "tetra.obj"
+    mesh.write_text(TETRA)
+    with pytest.raises(ValueError, match=r"tetra.obj' at scale 1e\+300 measures .* each extent must be"):
+        gym.make("BH8Grasp-v0", object_files=[f"{mesh}:1e300:0.1"])
+    urdf = f"{pybullet_data.getDataPath()}/cube_small.urdf"
+    with pytest.raises(ValueError, match=r"cube_small.urdf' at scale 1e\+300 measures"):
+        gym.make("BH8Grasp-v0", object_files=[f"{urdf}:1e300"])
+    with pytest.raises(ValueError, match="at scale 1e-05 measures"):
+        gym.make("BH8Grasp-v0", object_files=[f"{mesh}:0.00001:0.1"])  # a 10 µm speck
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as handle:
+        return int(handle.read().split()[1]) * 4096 / 1e6
+
+
+def test_primitive_episodes_keep_the_shapes_and_the_memory_bounded(monkeypatch):
+    """PyBullet never frees a collision shape, and a random primitive's never repeats: 2,000
+    primitive episodes added ~2.7 KB each for good. Past WORLD_SHAPE_LIMIT shapes the env builds a
+    fresh world at reset, so the shapes and the memory stay bounded."""
+    import gymnasium as gym
+
+    import bh8_gym  # noqa: F401
+    from bh8_gym.envs import base
+
+    monkeypatch.setattr(base, "WORLD_SHAPE_LIMIT", 64, raising=False)
+    env = gym.make("BH8Grasp-v0", object_set="primitives").unwrapped
+    try:
+        for _ in range(200):  # the allocator's steady state
+            env.reset()
+        before = _rss_mb()
+        for _ in range(2000):
+            env.reset()
+            assert env.scene.shapes_created <= 64
+        assert _rss_mb() - before < 2.0  # 2000 episodes kept ~5.4 MB before
+    finally:
+        env.close()
+
+
+def test_a_renewed_world_replays_a_seed_exactly(monkeypatch):
+    """Contract: a seed replays exactly whatever the env ran before, across a world renewal too
+    (the feedback bytes of a fresh env's episode)."""
+    import gymnasium as gym
+
+    import bh8_gym  # noqa: F401
+    from bh8_gym.envs import base
+
+    def episode_bytes(env, seed):
+        _, info = env.reset(seed=seed)
+        blocks = [info["feedback_block"]]
+        for step in range(40):
+            _, _, _, _, info = env.step(np.array([60, 200] * 3 + [0, 0], dtype=np.int16)[: env.action_space.shape[0]])
+            blocks.append(info["feedback_block"])
+        return blocks
+
+    fresh = gym.make("BH8Grasp-v0", object_set="primitives").unwrapped
+    used = gym.make("BH8Grasp-v0", object_set="primitives").unwrapped
+    try:
+        reference = episode_bytes(fresh, 7)
+        monkeypatch.setattr(base, "WORLD_SHAPE_LIMIT", 4, raising=False)
+        plant = used.plant
+        for seed in range(6):
+            used.reset(seed=100 + seed)
+        assert used.plant is not plant  # the world was renewed on the way
+        assert episode_bytes(used, 7) == reference
+    finally:
+        fresh.close()
+        used.close()

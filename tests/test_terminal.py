@@ -67,6 +67,29 @@ def test_pset_baud_switches_terminal_with_hand(served):
     assert result.stdout.splitlines() == ["=> PSET BAUD 384", "=> PGET BAUD", "384", "=> PSET BAUD 96", "=> PGET BAUD", "96"]
 
 
+def test_an_err_code_that_is_no_status_sum_is_reported_not_a_crash():
+    """A port answering "ERR" with 5000 digits (no Table 3 sum, §5.1.3) crashed `bh8 term` with
+    Python's integer-string ValueError: the line is printed, called garbled, and counts as a
+    failure (script mode exit 1); interactive mode prints it the same way."""
+    import io
+
+    from bh8_gym.terminal import _print_reply, explain_error, run_script
+
+    garbled = "ERR " + "9" * 5000
+
+    class GarblingHand:
+        def command(self, line, check=True):
+            return [garbled]
+
+    out, err = io.StringIO(), io.StringIO()
+    assert run_script(GarblingHand(), ["PGET TEMP\n", "VERS\n"], out, err) == 1
+    assert out.getvalue().splitlines() == ["=> PGET TEMP", garbled, "=> VERS", garbled]
+    assert err.getvalue().count("is not a status sum of Table 3 (0..32767)") == 2
+    assert explain_error("ERR 32768") == "ERR 32768 is not a status sum of Table 3 (0..32767): a garbled reply"
+    assert explain_error("ERR 16400") == "16 Couldn't reach position; 16384 Cntl-C abort command received"
+    _print_reply([garbled])  # no exception
+
+
 def test_missing_port_fails_cleanly(tmp_path):
     """A port that cannot be opened: a one-line error naming it, exit status 1, no traceback."""
     result = term(str(tmp_path / "nope"), "VERS\n")

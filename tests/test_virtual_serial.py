@@ -231,7 +231,7 @@ class Plant:
 
 class RunawayFirmware:
     \"\"\"Contract 2's surface, but every command runs forever (a motion that never terminates).\"\"\"
-    profile, plant, idle, in_loop, time = "4.3", Plant(), True, False, 0.0
+    profile, plant, idle, in_loop, time, baud, pending_input = "4.3", Plant(), True, False, 0.0, 9600, 0
     def write(self, data):
         pass
     def read(self):
@@ -439,9 +439,9 @@ def test_unpaced_server_hears_ctrl_c_during_a_motion_that_never_ends(tmp_path):
         with serial.Serial(server.device, 9600, timeout=0.05) as port:
             port.write(b"HI\r")
             time.sleep(0.5)
-            assert port.read(100) == b""  # still initialising
+            assert port.read(100) == b"HI"  # the echo as it arrived (SPEC.md §2); still initialising
             port.write(b"\x03")
-            assert _read_to_prompt(port) == b"HI\n\rERR 16384\n\r=> "  # within 100 reads of 0.05 s
+            assert _read_to_prompt(port) == b"\n\rERR 16384\n\r=> "  # within 100 reads of 0.05 s
     finally:
         server.stop()
         thread.join(timeout=10)

@@ -10,7 +10,8 @@ host's clock in the observation, follows the drawn latency.
 
 Reset runs nothing but a `Firmware.restore` of a snapshot taken once at construction, after the
 supervisory setup script (`setup_commands` then `loop_command`: the very lines `bh8 deploy` sends
-to a real hand) has run, then draws the randomisation (plant parameters, then processing time),
+to a real hand) has run (once the scene has made `WORLD_SHAPE_LIMIT` object shapes, which PyBullet
+never frees, reset first builds that world and snapshot afresh), then draws the randomisation (plant parameters, then processing time),
 places the episode's scene (`prepare_episode`, which `bh8 serve --env` runs on LOOP entry) and asks
 for one feedback block with an "A" header (no control data), which gives the first observation,
 as deploy does.
@@ -55,6 +56,11 @@ TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, 
 BITS_PER_BYTE = 10  # 8N1 (§9.1)
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
+# PyBullet never frees a collision shape (it refuses to remove one a body has used), and a random
+# primitive's shape never repeats, so each such episode kept ~2.5 KB for the life of the world.
+# After this many new object shapes, reset builds a fresh world instead of restoring the old one
+# (the same trajectories: a seed replays exactly whatever the env ran before). Memory stays bounded.
+WORLD_SHAPE_LIMIT = 1024
 
 
 class FirmwareProtocolError(RuntimeError):
@@ -220,24 +226,11 @@ class BH8LoopEnv(gym.Env):
         self._n_act = len(self.layout.control_fields)
         self._obs = np.zeros(len(names), dtype=np.float32)
 
-        # The world, the firmware, the setup script, and the snapshot every reset restores.
-        from bh8_gym.firmware import Firmware
-        from bh8_gym.plant import HandPlant, PlantParameters
+        from bh8_gym.plant import PlantParameters
 
         self._base_parameters = self._plant_parameters(
             PlantParameters() if plant_parameters is None else PlantParameters.from_overrides(plant_parameters))
-        self.plant = HandPlant(params=self._base_parameters, seed=0, gui=render_mode == "human")
-        # The store in memory: an env saves nothing between processes (no files, nothing a killed worker leaves).
-        self.firmware = Firmware(plant=self.plant, store_dir=None, profile=firmware_profile, seed=0)
-        self.scene = self._build_scene()
-        for line in self.setup_commands:
-            self._supervisory(line)
-        echo = self.firmware.transact(self.loop_command.encode() + b"\r")
-        if echo != self.loop_command.encode() + b"*":
-            raise FirmwareProtocolError(f"{self.loop_command!r} answered {echo!r}")
-        self.firmware.cycle_hook = self.scene.cycle_hook
-        self._snapshot = self.firmware.snapshot()
-        self._randomizer = PlantRandomizer(self.plant, self.firmware)
+        self._build_world()
 
         self._prev_action: list[int] = [0] * self._n_act
         self._feedback_block_size = self.layout.feedback_size
@@ -249,10 +242,40 @@ class BH8LoopEnv(gym.Env):
         self._cycles = 0
         self._last_values: tuple[int, ...] = ()
 
+    def _build_world(self) -> None:
+        """The world, the firmware, the setup script, and the snapshot every reset restores."""
+        from bh8_gym.firmware import Firmware
+        from bh8_gym.plant import HandPlant
+
+        self.plant = HandPlant(params=self._base_parameters, seed=0, gui=self.render_mode == "human")
+        # The store in memory: an env saves nothing between processes (no files, nothing a killed worker leaves).
+        self.firmware = Firmware(plant=self.plant, store_dir=None, profile=self.firmware_profile, seed=0)
+        self.scene = self._build_scene()
+        for line in self.setup_commands:
+            self._supervisory(line)
+        echo = self.firmware.transact(self.loop_command.encode() + b"\r")
+        if echo != self.loop_command.encode() + b"*":
+            raise FirmwareProtocolError(f"{self.loop_command!r} answered {echo!r}")
+        self.firmware.cycle_hook = self.scene.cycle_hook
+        self._snapshot = self.firmware.snapshot()
+        self._randomizer = PlantRandomizer(self.plant, self.firmware)
+        self._world_built()
+
+    def _renew_world_if_full(self) -> None:
+        """A fresh world once the scene has made WORLD_SHAPE_LIMIT object shapes (not under the
+        GUI, whose window it would replace; not from `prepare_episode`, whose firmware `bh8 serve
+        --env` holds)."""
+        if self.render_mode != "human" and getattr(self.scene, "shapes_created", 0) >= WORLD_SHAPE_LIMIT:
+            self.plant.close()
+            self._build_world()
+
     # ------------------------------------------------------------------ subclass interface
 
     def _build_scene(self):
         raise NotImplementedError
+
+    def _world_built(self) -> None:
+        """Called after each (re)build of the world: look up PyBullet ids of the new plant here."""
 
     def _plant_parameters(self, params):
         """The PlantParameters this env builds its plant with (subclasses adapt the world)."""
@@ -434,6 +457,8 @@ class BH8LoopEnv(gym.Env):
         self._episode_started = True
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if self.firmware is not None:
+            self._renew_world_if_full()
         self.prepare_episode(seed)
         values = self._cycle(self._a_block)
         self._elapsed = self.next_elapsed(0.0, len(self._a_block), self._processing_time)

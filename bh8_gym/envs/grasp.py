@@ -109,6 +109,9 @@ class BH8GraspEnv(BH8LoopEnv):
             plant_parameters=plant_parameters, privileged=privileged, render_mode=render_mode,
             render_size=render_size,
         )
+        self._phase_durations = self.arm.durations
+
+    def _world_built(self) -> None:
         import pybullet
 
         self._p = pybullet
@@ -122,7 +125,6 @@ class BH8GraspEnv(BH8LoopEnv):
                                 for part in ("inner", "outer", "tip")}
         self._hand = hand
         self._client = client
-        self._phase_durations = self.arm.durations
 
     # ------------------------------------------------------------------ scene and observation
 

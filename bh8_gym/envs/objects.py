@@ -23,7 +23,15 @@ Object sets (kwarg `object_set` of the environments):
 - ``"all"``: primitives, train and test (demonstrations, not evaluation).
 
 User objects: `parse_object_file` / `ObjectSet.from_files` take URDF files (optionally with a
-global scale) and meshes (OBJ/STL with a scale and a mass); see `parse_object_file`.
+global scale) and meshes (OBJ/STL with a scale and a mass); see `parse_object_file`. Every object
+stays within the plant's bounds (`bh8_gym.plant.OBJECT_EXTENT_RANGE_M`, `OBJECT_MASS_RANGE_KG`,
+`OBJECT_FRICTION_MAX`), and every mesh is read by `bh8_gym.meshes` before PyBullet sees it (a bad
+face index crashes PyBullet's reader): a bad spec or file raises a ValueError naming it, at
+`parse_object_file` for user files and again before loading.
+
+PyBullet never frees a collision shape (it refuses to remove one a body has used), so each new
+shape stays in memory for the life of the PyBullet client; `ObjectLoader.shapes_created` counts
+them, and the environments build a fresh world when it passes `envs.base.WORLD_SHAPE_LIMIT`.
 """
 from __future__ import annotations
 
@@ -37,12 +45,21 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from bh8_gym.plant import file_errors_named
+from bh8_gym.meshes import MESH_SUFFIXES, mesh_bounds
+from bh8_gym.plant import (
+    OBJECT_FRICTION_MAX,
+    OBJECT_MASS_RANGE_KG,
+    check_loaded_object,
+    check_mesh_file,
+    check_object_extents,
+    check_urdf_file,
+    check_urdf_object,
+    file_errors_named,
+)
 
 PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
 FILE_KINDS = ("urdf", "mesh")
 OBJECT_SETS = ("primitives", "train", "test", "mixed", "all")
-MESH_SUFFIXES = (".obj", ".stl", ".dae")
 
 
 @dataclass(frozen=True)
@@ -72,17 +89,19 @@ class ObjectSpec:
                 raise ValueError(f"a {self.kind} needs {expected} positive finite sizes, got {self.size!r}")
             if self.kind == "capsule" and self.size[1] < self.size[0]:
                 raise ValueError(f"a capsule's length must be at least its diameter, got {self.size!r}")
+            check_object_extents([float(s) for s in self.size], f"a {self.kind} of size {self.size!r}")
         else:
             if not self.path:
                 raise ValueError(f"a {self.kind} object needs a file path")
             if not (np.isfinite(self.scale) and self.scale > 0):
                 raise ValueError(f"object scale must be positive, got {self.scale!r}")
-        if self.mass is not None and not (np.isfinite(self.mass) and self.mass > 0):
-            raise ValueError(f"object mass must be positive (kg), got {self.mass!r}")
-        if self.kind == "mesh" and self.mass is None:
-            raise ValueError("a mesh object needs a mass (kg)")
-        if self.friction is not None and not (np.isfinite(self.friction) and self.friction >= 0):
-            raise ValueError(f"object friction must be >= 0, got {self.friction!r}")
+        low, high = OBJECT_MASS_RANGE_KG
+        if self.mass is not None and not (np.isfinite(self.mass) and low <= self.mass <= high):
+            raise ValueError(f"object mass must be {low:g} to {high:g} kg, got {self.mass!r}")
+        if self.kind != "urdf" and self.mass is None:  # only a URDF carries its own
+            raise ValueError(f"a {self.kind} object needs a mass (kg)")
+        if self.friction is not None and not (np.isfinite(self.friction) and 0 <= self.friction <= OBJECT_FRICTION_MAX):
+            raise ValueError(f"object friction must be 0 to {OBJECT_FRICTION_MAX:g}, got {self.friction!r}")
 
     @property
     def shape_key(self) -> tuple:
@@ -151,16 +170,9 @@ def _urdf_single_mesh(urdf_path: Path) -> tuple[Path, np.ndarray]:
 
 
 def obj_vertex_bounds(obj_path: Path | str) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned bounds (min, max) of the vertices of a Wavefront OBJ file."""
-    rows = []
-    with open(obj_path, "r", encoding="latin-1") as handle:
-        for line in handle:
-            if line.startswith("v "):
-                rows.append(line.split()[1:4])
-    if not rows:
-        raise ValueError(f"{obj_path} has no vertices")
-    vertices = np.asarray(rows, dtype=float)
-    return vertices.min(axis=0), vertices.max(axis=0)
+    """Axis-aligned bounds (min, max) of the vertices the faces of a mesh file use; a ValueError
+    (bh8_gym.meshes.MeshError) for a file PyBullet could not read safely."""
+    return mesh_bounds(obj_path)
 
 
 def _unit_hash(text: str) -> float:
@@ -234,13 +246,17 @@ def parse_object_file(text: str | os.PathLike | ObjectSpec) -> ObjectSpec:
     if suffix == ".urdf":
         if len(numbers) > 1:
             raise ValueError(f"object file spec {text!r}: a URDF takes at most a scale")
-        return ObjectSpec(kind="urdf", path=str(Path(path).resolve()), scale=numbers[0] if numbers else 1.0,
+        spec = ObjectSpec(kind="urdf", path=str(Path(path).resolve()), scale=numbers[0] if numbers else 1.0,
                           mass=None, friction=None, name=Path(path).stem)
+        check_urdf_object(spec.path, spec.scale)
+        return spec
     if suffix in MESH_SUFFIXES:
         if len(numbers) not in (2, 3):
             raise ValueError(f"mesh spec {text!r} needs PATH:SCALE:MASS_KG[:FRICTION]")
-        return ObjectSpec(kind="mesh", path=str(Path(path).resolve()), scale=numbers[0], mass=numbers[1],
+        spec = ObjectSpec(kind="mesh", path=str(Path(path).resolve()), scale=numbers[0], mass=numbers[1],
                           friction=numbers[2] if len(numbers) == 3 else 0.8, name=Path(path).stem)
+        check_mesh_file(spec.path, spec.scale)
+        return spec
     raise ValueError(f"object file {path!r}: expected .urdf or a mesh ({', '.join(MESH_SUFFIXES)})")
 
 
@@ -290,7 +306,9 @@ class ObjectSet:
 
 
 class ObjectLoader:
-    """Creates object bodies in one PyBullet client, caching shapes by `ObjectSpec.shape_key`."""
+    """Creates object bodies in one PyBullet client, caching shapes by `ObjectSpec.shape_key`.
+
+    `shapes_created` counts the shapes made: PyBullet keeps each until its client disconnects."""
 
     def __init__(self, client: int, visuals: bool = True):
         import pybullet
@@ -299,12 +317,15 @@ class ObjectLoader:
         self.client = client
         self.visuals = visuals
         self._shapes: dict[tuple, tuple[int, int]] = {}
+        self.shapes_created = 0
 
     def _shapes_for(self, spec: ObjectSpec) -> tuple[int, int]:
         cached = self._shapes.get(spec.shape_key)
         if cached is not None:
             return cached
         p = self._p
+        if spec.kind == "mesh":
+            check_mesh_file(spec.path, spec.scale)  # PyBullet's reader crashes on a bad face index
         if spec.kind == "box":
             geometry = dict(shapeType=p.GEOM_BOX, halfExtents=[s / 2 for s in spec.size])
         elif spec.kind == "cylinder":
@@ -326,14 +347,22 @@ class ObjectLoader:
                 visual_geometry["length"] = visual_geometry.pop("height")
             visual = p.createVisualShape(rgbaColor=spec.rgba, physicsClientId=self.client, **visual_geometry)
         self._shapes[spec.shape_key] = (collision, visual)
+        self.shapes_created += 1
         return collision, visual
 
     def create(self, spec: ObjectSpec, position: Sequence[float], orientation: Sequence[float]) -> int:
         """A body for `spec` at a pose (base frame = the shape's centre for primitives and meshes)."""
         p = self._p
         if spec.kind == "urdf":
+            check_urdf_file(spec.path)
             with file_errors_named(spec.kind, spec.path):
                 body = p.loadURDF(spec.path, position, orientation, globalScaling=spec.scale, physicsClientId=self.client)
+            self.shapes_created += 1  # its own shapes, kept by PyBullet as ours are
+            try:
+                check_loaded_object(self.client, body, f"URDF {spec.path!r} at scale {spec.scale:g}")
+            except ValueError:
+                p.removeBody(body, physicsClientId=self.client)
+                raise
         else:
             collision, visual = self._shapes_for(spec)
             body = p.createMultiBody(spec.mass, collision, visual, position, orientation, physicsClientId=self.client)

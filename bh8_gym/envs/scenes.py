@@ -141,6 +141,11 @@ class GraspScene:
         self.start_time: float | None = None
         plant.set_wrist_pose(self.wrist_start, WRIST_PALM_DOWN, teleport=True)
 
+    @property
+    def shapes_created(self) -> int:
+        """Object shapes made in this world (PyBullet keeps each; the env renews the world)."""
+        return self.loader.shapes_created
+
     def _table_position(self, top: float) -> tuple[float, float, float]:
         return (0.0, 0.0, top - self._table_half_height)
 
