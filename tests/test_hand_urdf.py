@@ -20,7 +20,8 @@ def robot():
 @pytest.fixture(scope="module")
 def loaded():
     client = p.connect(p.DIRECT)
-    body = p.loadURDF(str(hand_urdf.cached_urdf_path()), useFixedBase=False, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+    flags = p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER  # as the plant loads it
+    body = p.loadURDF(str(hand_urdf.cached_urdf_path()), useFixedBase=False, flags=flags, physicsClientId=client)
     yield client, body
     p.disconnect(client)
 

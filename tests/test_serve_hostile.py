@@ -190,8 +190,8 @@ def test_accel_0_then_gc_is_answered_and_the_server_idles(tmp_path):
 
 
 def test_an_unpaced_server_paces_a_motion_that_never_ends(tmp_path):
-    """A motion may never end (a finger jittering against a fixed post never stalls, §5.5 case 1;
-    a real hand runs on too). Without --realtime the server runs a command at full speed for
+    """A motion may run for minutes (TSTOP 65535: each motor drives against its open stop 65.5 s
+    before it counts as stalled, §5.5 case 1). Without --realtime the server runs a command at full speed for
     `full_speed_limit` simulated seconds, then follows the wall clock, so the motion costs what a
     paced server costs instead of a whole core; ^C still ends it (§5.5 case 4)."""
     import threading
@@ -202,10 +202,9 @@ def test_an_unpaced_server_paces_a_motion_that_never_ends(tmp_path):
     from bh8_gym.plant import HandPlant
     from bh8_gym.virtual_serial import PtyServer
 
-    plant = HandPlant(seed=0)  # palm down over a post between the fingers: HI never ends
-    plant.set_wrist_pose((0.0, 0.0, 0.225), (1.0, 0.0, 0.0, 0.0), teleport=True)
-    plant.add_object("box", (0.06, 0.06, 0.16), position=(0.0, 0.0, 0.12), fixed=True)
+    plant = HandPlant(seed=0)
     firmware = Firmware(plant=plant, store_dir=tmp_path / "store", seed=0)
+    assert firmware.transact(b"FSET TSTOP 65535\r").endswith(b"=> ")  # HI takes minutes
     server = PtyServer(firmware)
     server.full_speed_limit = 1.0  # simulated seconds at full speed (default UNPACED_FULL_SPEED_S)
     thread = threading.Thread(target=server.serve_forever, daemon=True)

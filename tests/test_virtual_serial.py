@@ -396,17 +396,16 @@ def test_realtime_paces_motion_and_ctrl_c_aborts(tmp_path):
         link.close()
 
 
-def _hand_around_a_fixed_post(store_dir):
-    """A hand whose HI never ends: palm down over a post fixed to the world that stands between the
-    fingers, so the spread cannot reach its stop and a finger keeps jittering against the post by
-    more than the stall window (§5.5 case 1 never fires; a real hand would run on too)."""
+def _hand_with_a_long_hi(store_dir):
+    """A hand whose HI outlasts every wait here: with TSTOP 65535 each motor drives against its open
+    stop for 65.5 s before it counts as stalled (§5.3.4 TSTOP, §5.5 case 1), then hits it again."""
     from bh8_gym.firmware import Firmware
     from bh8_gym.plant import HandPlant
 
     plant = HandPlant(seed=0)
-    plant.set_wrist_pose((0.0, 0.0, 0.225), (1.0, 0.0, 0.0, 0.0), teleport=True)
-    plant.add_object("box", (0.06, 0.06, 0.16), position=(0.0, 0.0, 0.12), fixed=True)
-    return plant, Firmware(plant=plant, store_dir=store_dir, seed=0)
+    firmware = Firmware(plant=plant, store_dir=store_dir, seed=0)
+    assert firmware.transact(b"FSET TSTOP 65535\r").endswith(b"=> ")
+    return plant, firmware
 
 
 def test_a_motion_that_never_ends_is_a_clear_error_in_process(tmp_path):
@@ -414,7 +413,7 @@ def test_a_motion_that_never_ends_is_a_clear_error_in_process(tmp_path):
     of hanging; the motion runs on until ^C aborts it (§5.5 case 4)."""
     from bh8_gym.firmware import FirmwareBusyError
 
-    plant, firmware = _hand_around_a_fixed_post(tmp_path / "store")
+    plant, firmware = _hand_with_a_long_hi(tmp_path / "store")
     try:
         with pytest.raises(FirmwareBusyError, match=r"b'HI\\r' after 5 simulated seconds"):
             firmware.transact(b"HI\r", max_seconds=5.0)
@@ -428,10 +427,11 @@ def test_a_motion_that_never_ends_is_a_clear_error_in_process(tmp_path):
 
 def test_unpaced_server_hears_ctrl_c_during_a_motion_that_never_ends(tmp_path):
     """Without --realtime the server runs a command as fast as it can but looks at the line every
-    0.25 simulated s, so ^C aborts a motion that never ends instead of the server running it for ever."""
+    0.25 simulated s, so ^C aborts a motion that does not end (a long HI here) instead of the server
+    running it to its end."""
     from bh8_gym.virtual_serial import PtyServer
 
-    plant, firmware = _hand_around_a_fixed_post(tmp_path / "store")
+    plant, firmware = _hand_with_a_long_hi(tmp_path / "store")
     server = PtyServer(firmware)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
