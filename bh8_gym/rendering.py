@@ -66,6 +66,53 @@ def render_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.
     return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3].copy()
 
 
+# A colour per kind of link (palm, knuckle, inner, outer), each piece of a compound shape a shade of it.
+_LINK_COLOURS = {"palm": (0.30, 0.45, 0.75), "knuckle": (0.35, 0.35, 0.38), "inner": (0.85, 0.45, 0.15),
+                 "outer": (0.25, 0.65, 0.30)}
+
+
+def collision_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
+    """Like `render_frame`, but of the hand's collision shapes (what PyBullet computes contacts with),
+    each drawn in its own colour, posed as the hand is now; the table and objects are left out."""
+    check_image_size(width, height)
+    cam = _camera_for(plant, camera)
+    client, hand = plant.client, plant.hand_id
+    scratch = p.connect(p.DIRECT)
+    try:
+        for link in range(-1, p.getNumJoints(hand, physicsClientId=client)):
+            if link == -1:
+                frame = p.getBasePositionAndOrientation(hand, physicsClientId=client)
+            else:
+                frame = p.getLinkState(hand, link, computeForwardKinematics=True, physicsClientId=client)[:2]
+            name = "palm" if link == -1 else p.getJointInfo(hand, link, physicsClientId=client)[12].decode()
+            base = _LINK_COLOURS.get(name.split("_")[-1], (0.5, 0.5, 0.5))
+            for index, shape in enumerate(p.getCollisionShapeData(hand, link, physicsClientId=client)):
+                kind, size, local_position, local_orientation = shape[2], shape[3], shape[5], shape[6]
+                shade = 1.0 - 0.18 * (index % 4)
+                rgba = (*(shade * c for c in base), 1.0)
+                if kind == p.GEOM_BOX:
+                    visual = p.createVisualShape(p.GEOM_BOX, halfExtents=[v / 2.0 for v in size], rgbaColor=rgba,
+                                                 physicsClientId=scratch)
+                elif kind == p.GEOM_CYLINDER:
+                    visual = p.createVisualShape(p.GEOM_CYLINDER, radius=size[1], length=size[0], rgbaColor=rgba,
+                                                 physicsClientId=scratch)
+                elif kind == p.GEOM_SPHERE:
+                    visual = p.createVisualShape(p.GEOM_SPHERE, radius=size[0], rgbaColor=rgba, physicsClientId=scratch)
+                else:
+                    continue  # the hand is built of boxes and cylinders only
+                position, orientation = p.multiplyTransforms(frame[0], frame[1], local_position, local_orientation)
+                p.createMultiBody(0.0, -1, visual, position, orientation, physicsClientId=scratch)
+        view = p.computeViewMatrixFromYawPitchRoll(cam.target, cam.distance, cam.yaw, cam.pitch, 0.0, 2,
+                                                   physicsClientId=scratch)
+        projection = p.computeProjectionMatrixFOV(cam.fov, width / height, 0.01, 5.0, physicsClientId=scratch)
+        image = p.getCameraImage(width, height, view, projection, renderer=p.ER_TINY_RENDERER, shadow=1,
+                                 lightDirection=list(cam.light_direction), lightAmbientCoeff=0.55,
+                                 lightDiffuseCoeff=0.5, lightSpecularCoeff=0.15, physicsClientId=scratch)[2]
+    finally:
+        p.disconnect(scratch)
+    return np.reshape(np.asarray(image, dtype=np.uint8), (height, width, 4))[:, :, :3].copy()
+
+
 def save_png(path, rgb: np.ndarray) -> Path:
     """Write an (H, W, 3) uint8 image as PNG."""
     import imageio.v2 as imageio
@@ -153,6 +200,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--wrist-height", type=float, default=None,
                         help="wrist height above the table, m (palm down; default: 0.3, or 0.2 with --object)")
+    parser.add_argument("--palm-up", action="store_true", help="turn the hand palm up (default: palm down)")
     parser.add_argument("--yaw", type=float, default=DEFAULT_CAMERA.yaw,
                         help="camera yaw, degrees (default: %(default)s)")
     parser.add_argument("--pitch", type=float, default=DEFAULT_CAMERA.pitch,
@@ -161,12 +209,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="camera distance from its target, m (default: %(default)s)")
     parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants (default: %(default)s)")
+    parser.add_argument("--shapes", choices=("visual", "collision", "both"), default="visual",
+                        help="draw the hand's visual shapes, its collision shapes (one colour per shape, "
+                             "objects left out), or both side by side (default: %(default)s)")
 
 
 def run(args) -> int:
     from bh8_gym.plant import HandPlant, PlantError, PlantParameters
 
     params = PlantParameters()
+    if args.palm_up:
+        params.wrist_orientation = (0.0, 0.0, 0.0, 1.0)
     if args.wrist_height is not None:
         params.wrist_position = (0.0, 0.0, float(args.wrist_height))
     elif args.object:
@@ -200,8 +253,13 @@ def run(args) -> int:
                 plant.step()
         target_point = tuple(float(v) for v in _camera_for(plant, None).target)
         camera = Camera(target=target_point, distance=args.distance, yaw=args.yaw, pitch=args.pitch)
+        frames = []
+        if args.shapes in ("visual", "both"):
+            frames.append(render_frame(plant, args.width, args.height, camera))
+        if args.shapes in ("collision", "both"):
+            frames.append(collision_frame(plant, args.width, args.height, camera))
         try:
-            save_png(args.output, render_frame(plant, args.width, args.height, camera))
+            save_png(args.output, np.hstack(frames))
         except OSError as error:
             print(f"bh8 render: cannot write {str(args.output)!r}: {error}", file=sys.stderr)
             return 1
