@@ -19,6 +19,7 @@ F3 and F2 lie 25 mm apart centre to centre and close side by side with a gap of
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import os
 import sys
@@ -86,13 +87,16 @@ JOINT_NAMES = (
     "f3_outer_joint",
 )
 TIP_LINK_NAMES = ("f1_tip", "f2_tip", "f3_tip")
-# Link pairs that never touch on the hardware, so contact between them is off (PyBullet already skips
-# a link and its parent). Each inner link leaves its knuckle housing through a slot above the palm
-# face, so it cannot meet the palm; the knuckle housings are parts of the palm, kept apart by the
-# spread's stops (at full spread they are 0.4 mm apart). Everything else touches as on the hand: outer
-# links meet the palm (§8: CT at the palm surface) and fingers meet each other (§9.6).
+# Link pairs whose contact is off (PyBullet already skips a link and its parent). Each inner link
+# leaves its knuckle housing through a slot above the palm face, so it cannot meet the palm; the
+# knuckle housings are parts of the palm, kept apart by the spread's stops (at full spread they are
+# 0.4 mm apart). An outer link meets the palm only with its end, when the finger closes onto the
+# palm face (§8: CT at the palm surface): the palm stop (palm_stop) holds it there as a joint limit,
+# which costs PyBullet far less than a contact between two links of the hand (25 % of the grasp env's
+# time). Everything else touches as on the hand: fingers meet each other (§9.6) and every link objects.
 NO_CONTACT_PAIRS = (
     ("palm", "f1_inner"), ("palm", "f2_inner"), ("palm", "f3_inner"),
+    ("palm", "f1_outer"), ("palm", "f2_outer"), ("palm", "f3_outer"),  # the palm stop instead: palm_stop()
     ("f1_knuckle", "f2_knuckle"), ("f1_knuckle", "f3_knuckle"), ("f2_knuckle", "f3_knuckle"),
 )
 
@@ -249,6 +253,45 @@ def generate_urdf() -> str:
         parts.append(_joint(f"{prefix}_tip_fixed", "fixed", f"{prefix}_outer", f"{prefix}_tip", kin.dh_transform(*rows[3])))
     parts.append("</robot>\n")
     return "".join(parts)
+
+
+def _outer_outline() -> np.ndarray:
+    """Points (x3, y3) and radii of the outer link's outline in its frame {3}: the corners of its
+    boxes (radius 0) and its two end cylinders."""
+    r, back = TIP_RADIUS, OUTER_HALF_THICKNESS
+    heel = kin.A3 - back
+    return np.array([
+        (OUTER_START, -back, 0.0), (OUTER_START, kin.D3, 0.0), (heel, -back, 0.0), (kin.A3 - r, kin.D3, 0.0),
+        (kin.A3 - r, kin.D3 - r, r), (heel, 0.0, back), (kin.A3, kin.D3 - r, 0.0), (kin.A3, 0.0, 0.0),
+    ])
+
+
+@functools.lru_cache(maxsize=None)
+def palm_stop_table(start: float, step: float, count: int) -> tuple[float, ...]:
+    """palm_stop at `count` inner angles from `start` in steps of `step` (rad), computed once a process."""
+    return tuple(palm_stop(start + k * step) for k in range(count))
+
+
+def palm_stop(inner: float) -> float:
+    """The outer joint's angle (rad, relative to the inner link) at which the outer link's end meets
+    the palm face when the inner link is at `inner` rad; the outer joint's upper limit if it never
+    does. The same for every finger: each finger closes in its own plane square to the palm face."""
+    outline = _outer_outline()
+    low, high = kin.OUTER_RANGE
+
+    def clearance(outer: float) -> float:
+        frame = kin.link_frames(3, 0.0, inner, outer)[2]
+        points = frame[:3, :3] @ np.column_stack((outline[:, 0], outline[:, 1], np.zeros(len(outline)))).T
+        return float(np.min(points[2] + frame[2, 3] - outline[:, 2])) - PALM_TOP
+
+    if clearance(high) >= 0.0:
+        return high
+    if clearance(low) < 0.0:
+        return low
+    for _ in range(40):  # bisection to far below a motor count
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if clearance(middle) >= 0.0 else (low, middle)
+    return low
 
 
 def default_output_path() -> Path:

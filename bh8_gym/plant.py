@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from bisect import bisect_left
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
@@ -58,6 +59,7 @@ SPREAD_INDEX = (0, 3)
 FINGER_JOINTS = ((0, 1, 2), (1, 4, 5), (2, 6, 7))  # (finger index, inner joint, outer joint)
 WORM_JOINTS = (1, 2, 4, 5, 6, 7)  # the finger joints, each behind a worm
 _THIRD = 1.0 / 3.0
+_PALM_TABLE_STEP = 0.05 * math.pi / 180.0  # rad of inner link between entries of the palm-stop table
 _IDLE_FORCE = 1e-9  # N·m: a joint motor that must not push (PyBullet skips a motor of force 0 and keeps
 #   reporting its last torque)
 _JOINT_RANGE_LOW = (kin.SPREAD_RANGE[0], kin.INNER_RANGE[0], kin.OUTER_RANGE[0]) * 2 + (kin.INNER_RANGE[0], kin.OUTER_RANGE[0])
@@ -377,6 +379,12 @@ class HandPlant:
         all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
         p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)
         self._links = [-1] + all_joints
+        # Where a closing outer link meets the palm, against the inner link's angle (hand_urdf.palm_stop):
+        # from 120° (it never does below) to the inner stop, as plain floats for the per-step path.
+        self._palm_table_start = math.radians(120.0)
+        count = int(round((kin.INNER_RANGE[1] - self._palm_table_start) / _PALM_TABLE_STEP)) + 1
+        self._palm_table = hand_urdf.palm_stop_table(self._palm_table_start, _PALM_TABLE_STEP, count)
+        self._palm_table_descending = [-value for value in self._palm_table]  # ascending, for bisect
         # The strain gauges measure the torque the outer joints transmit (§9.4), motor and worm together.
         for outer in OUTER_INDEX:
             p.enableJointForceTorqueSensor(self.hand_id, self.joint_indices[outer], True, physicsClientId=cid)
@@ -629,20 +637,23 @@ class HandPlant:
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
 
-    def _drive_worm(self, joint: int, target: float, force: float, sign: float) -> None:
+    def _drive_worm(self, joint: int, target: float, force: float, sign: float, high: float | None = None) -> None:
         """Drive a finger joint through its worm at `target` rad/s (`sign`: + closes) with at most `force`.
 
         The worm lets it move only in the drive's direction: its window's back edge follows the
         furthest position reached (lazily, within two `worm_slack`), its front edge is the joint's stop.
         A load helping the motion cannot make it run faster than `target` (the brake), and the motor's
         speed is capped at what ends the step at the stop (PyBullet enforces a limit only once the joint
-        is at it, so a fast joint would otherwise overshoot it).
+        is at it, so a fast joint would otherwise overshoot it). `high`: a closing stop short of the
+        joint's own (the palm, for an outer link).
         """
         state = self._state
         state.held[joint] = False
         position = state.positions[joint]
         velocity = state.velocities[joint]
-        slack, low, high = self._slack, self._joint_low[joint], self._joint_high[joint]
+        slack, low = self._slack, self._joint_low[joint]
+        if high is None:
+            high = self._joint_high[joint]
         forward = sign * target
         # (a joint told to wait, forward 0, is braked too: gravity must not turn it either way)
         if forward >= 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
@@ -651,18 +662,50 @@ class HandPlant:
         if sign > 0.0:
             back = position - slack
             if back - state.window_low[joint] > slack or state.window_high[joint] != high:
-                state.window_low[joint], state.window_high[joint] = (back if back > low else low), high
+                if back < state.window_low[joint]:
+                    back = state.window_low[joint]  # the back edge never moves back while closing
+                back = back if back > low else low
+                # (where a stop short of the joint's own, the palm, and the worm's back edge cross, the
+                # worm holds: the inner link, stopped by the palm at the outer link's angle, cannot
+                # wind the outer link back along the palm)
+                state.window_low[joint], state.window_high[joint] = back, (high if high > back else back)
             reach = (high - position) / self.dt if position < high else 0.0
             target = target if target < reach else reach
         else:
             back = position + slack
             if state.window_high[joint] - back > slack or state.window_low[joint] != low:
+                if back > state.window_high[joint]:
+                    back = state.window_high[joint]  # nor forward while opening
                 state.window_low[joint], state.window_high[joint] = low, (back if back < high else high)
             reach = (low - position) / self.dt if position > low else 0.0
             target = target if target > reach else reach
         state.target_velocities[joint] = target
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
+
+    def _palm_stop(self, inner: float) -> float:
+        """Where the outer link's end meets the palm face (rad, outer joint) with the inner link at `inner`."""
+        table, start = self._palm_table, self._palm_table_start
+        if inner <= start:
+            return table[0]
+        place = (inner - start) / _PALM_TABLE_STEP
+        index = int(place)
+        if index >= len(table) - 1:
+            return table[-1]
+        fraction = place - index
+        return table[index] + fraction * (table[index + 1] - table[index])
+
+    def _palm_stop_inner(self, outer: float) -> float:
+        """The inner link's angle (rad) at which the outer link, at `outer`, meets the palm face."""
+        table, descending = self._palm_table, self._palm_table_descending
+        index = bisect_left(descending, -outer)  # the first entry at or below `outer`
+        if index == 0:
+            return self._palm_table_start if table[0] <= outer else self._joint_high[1]
+        if index >= len(table):
+            return self._joint_high[1]
+        above, below = table[index - 1], table[index]
+        fraction = (above - outer) / (above - below) if above > below else 0.0
+        return self._palm_table_start + (index - 1 + fraction) * _PALM_TABLE_STEP
 
     def _command_joints(self) -> None:
         """Joint targets, force limits and worm windows for this step from the drives and the clutch."""
@@ -696,8 +739,10 @@ class HandPlant:
                 capacity = fraction * self._finger_capacity
                 drive_capacity[f] = sign * capacity
                 omega = velocity / INNER_COUNTS_PER_RAD
-                # One motor turns both worms: a link against its stop stalls the whole finger.
-                at_stop[f] = (q[i2] >= inner_closed or q[i3] >= outer_closed) if closing else q[i2] <= inner_open
+                # One motor turns both worms: a link against its stop (or the palm) stalls the whole finger.
+                palm = self._palm_stop(q[i2])
+                at_stop[f] = (q[i2] >= inner_closed or q[i3] >= (palm if palm < outer_closed else outer_closed)
+                              ) if closing else q[i2] <= inner_open
                 if at_stop[f]:
                     inner_target = outer_target = 0.0
                 else:
@@ -723,13 +768,15 @@ class HandPlant:
                 inner_load, outer_load = sign * tau[i3], sign * tau[i2]
                 inner_force = capacity - inner_load / 3.0 if inner_load > 0.0 else capacity
                 outer_force = capacity - outer_load if outer_load > 0.0 else capacity
-                drive_worm(i2, inner_target, inner_force if inner_force > inner_floor else inner_floor, sign)
-                drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign)
+                drive_worm(i2, inner_target, inner_force if inner_force > inner_floor else inner_floor, sign,
+                           self._palm_stop_inner(q[i3]) if closing else None)
+                drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign, palm)
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
-                at_stop[f] = q[i3] >= outer_closed if closing else q[i3] <= outer_open
+                palm = self._palm_stop(q[i2])
+                at_stop[f] = q[i3] >= (palm if palm < outer_closed else outer_closed) if closing else q[i3] <= outer_open
                 capacity = fraction * self._outer_capacity
-                drive_worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign)
+                drive_worm(i3, velocity / OUTER_ABS_COUNTS_PER_RAD, capacity, sign, palm)
                 drive_capacity[f] = sign * capacity
         # Spread: back-drivable; F2 follows F1 through the gear constraint.
         s1, s2 = SPREAD_INDEX
