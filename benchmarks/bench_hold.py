@@ -17,10 +17,10 @@ Printed per shape:
   what it was when GC ended (the gauges sense the outer joints only);
 * slip and rotation of the object in the wrist frame from the end of the lift to the end of the hold
   (median and max, over the closed grasps that kept it);
-* how long each finger that ends on the object drives after its first contact with it, the longest
-  per grasp (median, max, and the share within TSTOP + 0.2 s): §5.5 says a motor stops TSTOP after it
-  stalls; a finger that breaks away wraps its outer link round the object first. (A finger that
-  misses the object closes to CT: GC takes as long as that, whatever the others do.)
+* GC's end after the last finger's first contact, over the grasps all three fingers end on (median,
+  max, and the share within TSTOP + 0.2 s): §5.5 says a motor stops TSTOP after it stalls; a finger
+  that breaks away wraps its outer link round the object first. (A finger that misses the object
+  closes to CT: GC then takes as long as that, whatever the others do.)
 
 Run: python benchmarks/bench_hold.py [--shapes cylinder box] [--placements 15] [--shake] [--jobs 2]
 """
@@ -127,7 +127,7 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     plant.set_wrist_pose((0.0, 0.0, wrist_z), PALM_DOWN, teleport=True)
     fw.run_for(0.1)  # the object settles
     fingers = {plant._link_index_by_name[f"f{f}_{part}"]: f - 1 for f in (1, 2, 3) for part in ("inner", "outer")}
-    first_contact, stopped = [None, None, None], [None, None, None]
+    first_contact = [None, None, None]
     fw.write(b"GC\r")
     start = fw.time
     while not fw.idle:
@@ -140,9 +140,6 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
             finger = fingers.get(contact[3])
             if finger is not None and first_contact[finger] is None:
                 first_contact[finger] = fw.time - start
-        for finger in range(3):
-            if stopped[finger] is None and not plant._state.drive_on[finger]:  # HOLD 0: off when it terminates
-                stopped[finger] = fw.time - start
     fw.read()
     gc_seconds = fw.time - start
     gc_loads = plant.strain_gauges()[:3] - np.array(plant.strain_offsets)
@@ -167,8 +164,7 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     loads = plant.strain_gauges()[:3] - np.array(plant.strain_offsets)
     kept = slip < KEPT_DISTANCE and float(plant.object_pose(body)[0][2]) > LIFT_HEIGHT / 2
     squeezed = bool(loads.sum() >= 0.7 * gc_loads.sum())
-    on_object = [f for f in touching if first_contact[f] is not None and stopped[f] is not None]
-    after_contact = max((stopped[f] - first_contact[f] for f in on_object), default=None)
+    after_contact = gc_seconds - max(first_contact) if len(touching) == 3 and None not in first_contact else None
     return dict(closed=closed, all_three=len(touching) == 3, kept=kept, squeezed=squeezed, slip_mm=slip * 1000.0, rotation_deg=rotation, gc_s=gc_seconds,
                 after_contact_s=after_contact,
                 gc_loads=gc_loads.tolist(), loads=loads.tolist())
