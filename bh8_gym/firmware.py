@@ -94,9 +94,10 @@ PROMPT = b"=> "
 EOL = b"\n\r"
 MAX_LINE_LENGTH = 255  # our choice: longer lines fail with ERR 128
 # Our choice (the manual only says "no motion"): movement below this many counts during TSTOP ms
-# is a stall. A few counts absorbs contact jitter; the slowest profile start (ACCEL 1) covers it
-# in about 10 ms, well inside the default TSTOP of 30 ms.
-STALL_DISTANCE_COUNTS = 3.0
+# is a stall. It absorbs a fingertip creeping along a curved object under full force (up to about
+# 200 counts/s, 2 degrees of its outer link a second, in PyBullet); the slowest command, MCV 16,
+# moves 39 counts in the shortest window (MIN_STALL_WINDOW_MS), and a profile's start is exempt.
+STALL_DISTANCE_COUNTS = 10.0
 # Our choice: the shortest time a stall is judged over, whatever TSTOP says (0 is in its range):
 # a motor starting from rest moves less than STALL_DISTANCE_COUNTS in its first physics step, and
 # HI would take that for the open stop (and zero the encoder wherever the finger was).

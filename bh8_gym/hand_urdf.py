@@ -3,16 +3,17 @@
 Every link frame is the D-H frame of manual §9.5 Table 9 (Craig's modified convention, Equation 1),
 so PyBullet's link frames equal `kinematics.link_frames`:
 
-* `palm` (the base) is the wrist frame {W}: z out through the palm, palm face at z = Dw.
+* `palm` (the base) is the wrist frame {W}: z out through the palm, palm face at PALM_TOP (≈ Dw).
 * `fK_knuckle` is frame {1} of finger K: F1/F2 turn about it (the spread joint, axis r·z so that the
   joint angle is the manual's Θk1 >= 0); F3's knuckle is fixed (r = 0: F3 does not spread).
 * `fK_inner` is frame {2} (joint angle Θk2), `fK_outer` frame {3} (Θk3, relative to the inner link),
   `fK_tip` the fixed fingertip frame {T}.
 
-Joint ranges are §9.6 / App. A (inner 0-140°, outer 0-48°, spread 0-180°). Collision shapes are
-boxes and cylinders of the hand's proportions (finger width `FINGER_WIDTH`, so at full spread F1,
-F3 and F2 lie 25 mm apart centre to centre and close side by side with a gap of
-`AW - FINGER_WIDTH`); the masses add up to App. A's 1.18 kg.
+Joint ranges are §9.6 / App. A (inner 0-140°, outer 0-48°, spread 0-180°). Collision shapes (the
+visual shapes are the same) are boxes and cylinders of Barrett's CAD outline (the constants below;
+docs/modelling.md shows them): at full spread F1, F3 and F2 lie 25 mm apart centre to centre and
+close side by side with a gap of `AW - FINGER_WIDTH`; the outer link ends at the D-H tip, so closed
+fingers rest on the palm face (`palm_stop`); the masses add up to App. A's 1.18 kg.
 
 `python -m bh8_gym.hand_urdf [--output PATH]` writes the URDF (default: assets/bh8_262.urdf).
 """
