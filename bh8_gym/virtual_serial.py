@@ -15,8 +15,19 @@ Two ways to run simulated time (SPEC.md §6):
   Idle time between commands costs no simulated time here either (Contract 2), so an idle paced
   server also sleeps in poll().
 
-The follower stays open in the server for its whole life, so a client may close and reopen the
-device without the server seeing a hang-up and without losing the hand's state.
+A client may close and reopen the device without losing the hand's state. Like a real port, a
+closed device receives nothing and a fresh open starts empty: nothing a client left unread (the
+reply to a ^C sent just before closing, a prompt it stopped reading) reaches the next open, however
+fast it follows (Barrett's C++ API closes and reopens at once to discard buffers when it changes
+the baud rate). A pty cannot drop bytes when its client closes it, so on Linux the printed device
+is a symlink (in a private directory under /dev/shm) to a pty no client has opened yet: as soon as a
+client opens it, inotify wakes the server (`_OpenWatch`), which points the symlink (and `--link`)
+at a fresh pty, and the next open gets that one. The hand answers on the pty its input came from;
+a pty is closed when its client closes it (the leader's hang-up tells), and what was left in it
+goes with it. Elsewhere the device is the pty itself, held open by the server, and unread bytes
+wait for the next reader. The hand itself keeps its state: a client killed in the middle of a
+RealTime control block leaves the firmware waiting for that block's data bytes, as a real hand does
+(docs/clients.md says how to recover).
 
 `--env ID --seed N [--env-kwargs JSON]` serves a Gymnasium environment's own firmware
 (`gym.make(ID, **kwargs).unwrapped.firmware`: its plant, scene, arm and fresh store), so a host
@@ -34,11 +45,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
+import ctypes.util
+import errno
 import json
 import os
 import select
+import shutil
 import signal
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -256,6 +272,114 @@ def open_raw_pty() -> tuple[int, int, str]:
     return leader, follower, path
 
 
+class _OpenWatch:
+    """Wakes the server when a client opens the pty follower (inotify IN_OPEN on the device).
+
+    Only a wake-up: inotify merges identical events that are not yet read, so it cannot count
+    clients; the leader's hang-up (the kernel's count) says whether any client has the device open.
+    Linux only; `create` returns None where inotify is missing.
+    """
+
+    _IN_OPEN = 0x20
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    @classmethod
+    def create(cls, path: str) -> "_OpenWatch | None":
+        if not sys.platform.startswith("linux"):
+            return None
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+            fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        except (OSError, AttributeError):
+            return None
+        if fd < 0:
+            return None
+        if libc.inotify_add_watch(fd, os.fsencode(path), cls._IN_OPEN) < 0:
+            os.close(fd)
+            return None
+        return cls(fd)
+
+    def drain(self) -> None:
+        """Read the pending events (their content does not matter)."""
+        while True:
+            try:
+                if not os.read(self.fd, 4096):
+                    return
+            except BlockingIOError:
+                return
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+class _Pty:
+    """One pseudo-terminal: its leader, what it owes its client, whether a client has it open.
+
+    With an open watch (Linux) the server holds no follower fd, so the leader hangs up while no
+    client has the device open; without one the follower stays open and the pty counts as
+    always connected."""
+
+    def __init__(self):
+        self.leader, self.follower, self.device = open_raw_pty()
+        self.backlog = bytearray()
+        self.polled_for_output = False
+        self.watch = _OpenWatch.create(self.device)
+        self.client = self.watch is None
+        if self.watch is not None:
+            self._hangup = select.poll()
+            self._hangup.register(self.leader, 0)
+            os.close(self.follower)
+            self.follower = -1
+
+    def client_present(self) -> bool:
+        """Whether a client has the device open now (reads the open watch's wake-ups)."""
+        if self.watch is None:
+            return True
+        self.watch.drain()
+        return not self._hangup.poll(0)
+
+    def read(self) -> bytes:
+        chunks = []
+        while True:
+            try:
+                chunk = os.read(self.leader, _READ_CHUNK)
+            except BlockingIOError:
+                break
+            except OSError as error:
+                if error.errno != errno.EIO:
+                    raise
+                break  # no client has the device open (what the last one wrote was read first)
+            if not chunk:
+                break
+            chunks.append(chunk)
+        return b"".join(chunks)
+
+    def close(self) -> None:
+        if self.watch is not None:
+            self.watch.close()
+            self.watch = None
+        for fd in (self.leader, self.follower):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.leader = self.follower = -1
+
+
+def _private_directory() -> str:
+    """A new directory only its owner can enter, for the device's symlink: under /dev/shm where
+    there is one (the printed device then still starts with /dev/, as pty paths do), else the
+    system's temporary directory."""
+    for parent in ("/dev/shm", None):
+        try:
+            return tempfile.mkdtemp(prefix="bh8-serve-", dir=parent)
+        except OSError:
+            continue
+    raise OSError("cannot make a private directory for the device's symlink")
+
+
 class _Stopped(Exception):
     """Raised by the signal handler to abandon a firmware run in progress."""
 
@@ -269,24 +393,33 @@ class PtyServer:
         self.realtime = bool(realtime)
         self.counter_save_interval = float(counter_save_interval)
         self._counters_due: float | None = None  # monotonic time by which the counters must be saved
-        self._leader, self._follower, self.device = open_raw_pty()
         self._wake_read, self._wake_write = os.pipe()
         os.set_blocking(self._wake_read, False)
         os.set_blocking(self._wake_write, False)
         self._stopping = False
-        self._backlog = bytearray()
         self._poller = select.poll()
         self._poller.register(self._wake_read, select.POLLIN)
-        self._poller.register(self._leader, select.POLLIN)
-        self._polling_output = False
         self._running_firmware = False
+        self._ptys: list[_Pty] = []
+        self._pending_input = bytearray()  # what the client of a pty closed since wrote before closing
+        self._links: list[Path] = []  # the printed device (Linux) and --link: all at self._fresh
+        self._link_dir: str | None = None
         self.link = None
-        if link is not None:
-            try:
+        try:
+            self._fresh = self._add_pty()
+            self._speaker: _Pty | None = self._fresh  # the pty the last input came from
+            if self._fresh.watch is None:
+                self.device = self._fresh.device
+            else:
+                self._link_dir = _private_directory()
+                self.device = os.path.join(self._link_dir, "ttyBH8")
+                os.symlink(self._fresh.device, self.device)
+                self._links.append(Path(self.device))
+            if link is not None:
                 self._make_link(Path(link))
-            except BaseException:
-                self._close_fds()
-                raise
+        except BaseException:
+            self._close_fds()
+            raise
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -316,33 +449,77 @@ class PtyServer:
             pass  # the pipe is full or closed: the loop is waking up or gone already
 
     def close(self) -> None:
-        """Remove the --link symlink (if still ours) and close the pty."""
-        if self.link is not None:
+        """Remove the device's and --link's symlinks (if still ours) and close the ptys."""
+        ours = {pty.device for pty in self._ptys}
+        for path in self._links:
             try:
-                if os.readlink(self.link) == self.device:
-                    os.unlink(self.link)
+                if os.readlink(path) in ours:
+                    os.unlink(path)
             except OSError:
                 pass  # already gone or replaced by someone else: leave it
-            self.link = None
+        self._links = []
+        self.link = None
         self._close_fds()
 
     def _close_fds(self) -> None:
-        for fd in (self._leader, self._follower, self._wake_read, self._wake_write):
+        for pty in self._ptys:
+            pty.close()
+        self._ptys = []
+        if self._link_dir is not None:
+            shutil.rmtree(self._link_dir, ignore_errors=True)
+            self._link_dir = None
+        for fd in (self._wake_read, self._wake_write):
             try:
                 os.close(fd)
             except OSError:
                 pass
-        self._leader = self._follower = self._wake_read = self._wake_write = -1
+        self._wake_read = self._wake_write = -1
 
     def _make_link(self, path: Path) -> None:
-        # Left behind by a server that was killed: dangling, or pointing at the pty just opened
-        # (the kernel reuses the freed pty's number; no live server can hold this one).
-        if path.is_symlink() and (not path.exists() or os.readlink(path) == self.device):
+        # Left behind by a server that was killed: dangling, or pointing at a pty just opened here
+        # (the kernel reuses the freed pty numbers; no live server can hold these).
+        if path.is_symlink() and (not path.exists() or os.readlink(path) == self._fresh.device):
             path.unlink()
         elif path.exists() or path.is_symlink():
             raise FileExistsError(f"--link {path}: already exists; remove it or choose another path")
-        os.symlink(self.device, path)
+        os.symlink(self._fresh.device, path)
+        self._links.append(path)
         self.link = path
+
+    def _add_pty(self) -> _Pty:
+        pty = _Pty()
+        self._ptys.append(pty)
+        self._poller.register(pty.leader if pty.watch is None else pty.watch.fd, select.POLLIN)
+        return pty
+
+    def _replace_fresh_pty(self) -> None:
+        """The fresh pty got a client: point the device's and --link's symlinks at a new one, so
+        the next open (this client reopening to discard buffers, the next program) starts empty
+        whatever this client leaves unread. Each link is replaced atomically (rename)."""
+        fresh = self._add_pty()
+        for path in self._links:
+            temporary = path.with_name(f".{path.name}.{os.getpid()}")
+            try:
+                temporary.unlink(missing_ok=True)
+                os.symlink(fresh.device, temporary)
+                os.replace(temporary, path)
+            except OSError as error:
+                print(f"bh8 serve: cannot repoint {path}: {error}", file=sys.stderr, flush=True)
+        self._fresh = fresh
+
+    def _drop_pty(self, pty: _Pty) -> None:
+        """Close a pty whose client closed it; what it still held for a reader goes with it. What
+        the client wrote before closing still reaches the hand (the replies go nowhere)."""
+        self._pending_input += pty.read()
+        for fd in (pty.leader, pty.watch.fd if pty.watch is not None else -1):
+            try:
+                self._poller.unregister(fd)
+            except (KeyError, ValueError):
+                pass
+        pty.close()
+        self._ptys.remove(pty)
+        if self._speaker is pty:
+            self._speaker = None
 
     # -- the two serving loops -------------------------------------------------------------
 
@@ -408,42 +585,72 @@ class PtyServer:
     # -- pty plumbing ------------------------------------------------------------------------
 
     def _wait(self, timeout_s: float | None) -> None:
-        want_output = bool(self._backlog)
-        if want_output != self._polling_output:
-            self._poller.modify(self._leader, select.POLLIN | (select.POLLOUT if want_output else 0))
-            self._polling_output = want_output
+        for pty in self._ptys:
+            want_output = bool(pty.backlog)
+            if pty.client and want_output != pty.polled_for_output:
+                self._poller.modify(pty.leader, select.POLLIN | (select.POLLOUT if want_output else 0))
+                pty.polled_for_output = want_output
         self._poller.poll(None if timeout_s is None else timeout_s * 1000.0)
         try:
             os.read(self._wake_read, 64)
         except BlockingIOError:
             pass
+        self._follow_clients()
+
+    def _follow_clients(self) -> None:
+        """Track which ptys a client has open: a pty that got its first client is replaced by a
+        fresh one behind the symlinks; one whose client closed is closed (on a pty the unread
+        bytes would wait for the next reader). While a client has it open the leader is polled
+        (without a client it would report a hang-up at every poll)."""
+        for pty in tuple(self._ptys):
+            if pty.watch is None:
+                continue
+            present = pty.client_present()
+            if present == pty.client:
+                continue
+            pty.client = present
+            if present:
+                self._poller.register(pty.leader, select.POLLIN)
+                pty.polled_for_output = False
+                if pty is self._fresh:
+                    self._replace_fresh_pty()
+            else:
+                self._poller.unregister(pty.leader)
+                self._drop_pty(pty)
 
     def _read_input(self) -> bytes:
-        chunks = []
-        while True:
-            try:
-                chunk = os.read(self._leader, _READ_CHUNK)
-            except BlockingIOError:
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-        return b"".join(chunks)
+        """Input from one pty at a time (a closed one's last bytes first), so the hand answers on
+        the pty each command came from."""
+        self._follow_clients()
+        if self._pending_input:
+            data = bytes(self._pending_input)
+            self._pending_input.clear()
+            self._speaker = None  # its pty is closed: the replies go nowhere, as on a closed port
+            return data
+        for pty in self._ptys:
+            data = pty.read()
+            if data:
+                self._speaker = pty
+                return data
+        return b""
 
     def _queue_output(self, data: bytes) -> None:
-        if data:
-            self._backlog += data
-            overflow = len(self._backlog) - OUTPUT_BACKLOG_LIMIT
+        self._follow_clients()
+        pty = self._speaker
+        if data and pty is not None and pty.client:
+            pty.backlog += data
+            overflow = len(pty.backlog) - OUTPUT_BACKLOG_LIMIT
             if overflow > 0:
-                del self._backlog[:overflow]
+                del pty.backlog[:overflow]
 
     def _flush_output(self) -> None:
-        while self._backlog:
-            try:
-                written = os.write(self._leader, self._backlog)
-            except BlockingIOError:
-                return
-            del self._backlog[:written]
+        for pty in self._ptys:
+            while pty.backlog:
+                try:
+                    written = os.write(pty.leader, pty.backlog)
+                except BlockingIOError:
+                    break
+                del pty.backlog[:written]
 
 
 # -- the `bh8 serve` subcommand ---------------------------------------------------------------
@@ -462,7 +669,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="firmware profile (default 4.3; with --env use --env-kwargs firmware_profile)")
     parser.add_argument(
         "--link", metavar="PATH", default=None,
-        help="also make a symlink PATH -> the device (e.g. /dev/ttyUSB0), removed on exit",
+        help="also make a symlink PATH (e.g. /dev/ttyUSB0, for programs with a hard-wired port name) to a "
+             "pty of this hand; every open of PATH gets a fresh pty, so nothing a program left unread "
+             "survives its reopening the port, however fast (docs/clients.md); removed on exit",
     )
     parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")

@@ -9,6 +9,7 @@ no CPU), SPEC.md §2 (framing, ^C → ERR 16384), §5 (RealTime blocks are count
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import stat
@@ -49,9 +50,15 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _check_link_serves_then_goes(link: PtyLink, link_path: Path) -> None:
-    """--link points at the server's device, which answers; a clean exit removes the link."""
+    """--link points at a pty of the server (each open of the link a fresh one, Contract 3), which
+    answers as the device does; a clean exit removes the link."""
     try:
-        assert os.readlink(link_path) == link.device
+        for _ in range(2):
+            target = os.readlink(link_path)
+            assert target.startswith("/dev/pts/") and stat.S_ISCHR(os.stat(target).st_mode)
+            with serial.Serial(str(link_path), 9600, timeout=0.05) as port:
+                port.write(b"\r")
+                assert _read_to_prompt(port) == b"\n\r=> "
         link.write(b"\r")
         link.read_until(PROMPT, timeout=10)
     finally:
@@ -107,9 +114,9 @@ def test_link_symlink_created_and_removed(tmp_path):
 
 
 def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
-    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty number
-    to the next server, so the stale link then points at the new server's own device. A restart
-    with the same --link must take it over, not refuse it as 'already exists'."""
+    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty numbers
+    to the next server, so the stale link then points at one of the new server's own ptys. A
+    restart with the same --link must take it over, not refuse it as 'already exists'."""
     link_path = tmp_path / "ttyUSB0"
     first = _serve(tmp_path / "store1", "--link", str(link_path))
     first.port.close()
@@ -656,3 +663,155 @@ def test_pty_carries_any_byte_stream_like_in_process(pty_and_sim, data):
     link.write(data)
     assert link.read_exact(len(expected), timeout=10) == expected
     assert link.port.read(1) == b""  # nothing more within the port's 50 ms timeout
+
+
+# -- what a closed port receives, and the breakaway parameters on the wire ---------------------
+
+
+def _raw_open(device: str, baud: int | None = None) -> int:
+    """Open the device as a C client does (open(2), cfmakeraw, the baud rate), without the input
+    flush pyserial's open() adds, so bytes waiting in the pty would be read."""
+    import termios
+    import tty
+
+    fd = os.open(device, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd, termios.TCSANOW)  # not TCSAFLUSH (the default), which would discard input itself
+    if baud is not None:
+        attrs = termios.tcgetattr(fd)
+        attrs[4] = attrs[5] = getattr(termios, f"B{baud}")
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    return fd
+
+
+def _raw_read(fd: int, seconds: float) -> bytes:
+    """Everything that arrives on `fd` within `seconds`."""
+    deadline = time.monotonic() + seconds
+    data = bytearray()
+    while (left := deadline - time.monotonic()) > 0:
+        ready, _, _ = select.select([fd], [], [], left)
+        if ready:
+            data += os.read(fd, 4096)
+    return bytes(data)
+
+
+def _raw_read_until(fd: int, terminator: bytes, timeout: float = 10.0) -> bytes:
+    deadline = time.monotonic() + timeout
+    data = bytearray()
+    while not data.endswith(terminator):
+        left = deadline - time.monotonic()
+        ready, _, _ = select.select([fd], [], [], max(left, 0.0))
+        if not ready:
+            raise TimeoutError(f"no {terminator!r} within {timeout}s; got {bytes(data)!r}")
+        data += os.read(fd, 1)
+    return bytes(data)
+
+
+def test_a_fresh_open_starts_empty_whatever_the_last_client_left_unread(tmp_path):
+    """A real port drops what arrives while it is closed and a new open starts empty (issue 18):
+    a client that sends ^C (SPEC.md §2: idle ^C gets a prompt) or a command and closes without
+    reading the reply must not leave that reply for the next client, whether it closed before the
+    hand answered or after. The next client then gets exactly its own replies. (A reply that is
+    still on its way when the next client opens, the end of a long motion, reaches that client,
+    as it would through a port.)"""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        for sent, wait in ((b"\x03", 0.0), (b"\x03", 0.3), (b"1FGET P\r", 0.3), (b"1FGET P\r", 0.0)):
+            first = _raw_open(link.device)
+            os.write(first, sent)
+            time.sleep(wait)  # 0.3 s: the reply has surely arrived in the pty, unread
+            os.close(first)
+            time.sleep(0.3)  # the next run of a program
+            second = _raw_open(link.device)
+            try:
+                assert _raw_read(second, 0.5) == b"", f"stale bytes after {sent!r}"
+                os.write(second, b"\r")
+                assert _raw_read_until(second, PROMPT, timeout=60) == b"\n\r=> "
+                os.write(second, b"2FGET DP\r")
+                assert _raw_read_until(second, PROMPT) == b"2FGET DP\n\r8500\n\r=> "
+            finally:
+                os.close(second)
+    finally:
+        link.close()
+
+
+def test_reopening_the_port_discards_the_reply_left_unread_as_a_baud_change_does(tmp_path):
+    """§5.4.1 BAUD: after PSET BAUD a client switches its own port to the new rate; Barrett's C++
+    API does so by reading only the echo, waiting, closing and reopening the port at once to
+    discard the buffers, then sending a CR and expecting a prompt (docs/clients.md). The reply to
+    PSET BAUD must not survive the reopen, or every later reply is read one prompt late. The
+    reopen follows the close within microseconds, faster than a server could flush a pty, so every
+    open of the device (and of --link) is a fresh pty (Contract 3)."""
+    linked = tmp_path / "ttyUSB0"
+    link = _serve(tmp_path / "store", "--link", str(linked))
+    link.port.close()
+    try:
+        for rate, device in ((38400, linked), (9600, link.device), (19200, linked), (38400, link.device), (9600, linked)):
+            fd = _raw_open(str(device))
+            line = f"PSET BAUD {rate // 100}".encode()
+            os.write(fd, line + b"\r")
+            assert _raw_read_until(fd, line) == line  # the echo only; the reply is left unread
+            time.sleep(0.3)
+            os.close(fd)
+            fd = _raw_open(str(device), baud=rate)
+            try:
+                os.write(fd, b"\r")
+                assert _raw_read_until(fd, PROMPT) == b"\n\r=> "
+                os.write(fd, b"PGET BAUD\r")
+                assert _raw_read_until(fd, PROMPT) == f"PGET BAUD\n\r{rate // 100}\n\r=> ".encode()
+            finally:
+                os.close(fd)
+    finally:
+        link.close()
+
+
+def test_each_open_of_the_link_is_a_fresh_pty_on_the_same_hand(tmp_path):
+    """Contract 3 / --link: the link moves to a new pty whenever a client opens it, so nothing the
+    last client left unread reaches the next one however fast it reopens; the hand is the same
+    (its unsaved state carries over), and a pty whose client closed is released."""
+    device = tmp_path / "ttyUSB0"
+    link = _serve(tmp_path / "store", "--link", str(device))
+    link.port.close()
+    try:
+        for value in (4321, 1234, 2222, 3333):
+            opened = os.readlink(device)
+            fd = _raw_open(str(device))
+            try:
+                os.write(fd, f"1FSET DP {value}\r".encode())
+                assert _raw_read_until(fd, PROMPT) == f"1FSET DP {value}\n\r=> ".encode()
+                assert os.readlink(device) != opened  # moved on while this client holds `opened`
+                os.write(fd, b"\x03")  # a ^C at disconnect whose prompt this client never reads
+                time.sleep(0.2)  # the prompt is in the pty, unread (one still in flight could reach a reopen, as on a port)
+            finally:
+                os.close(fd)
+            fd = _raw_open(str(device))
+            try:
+                os.write(fd, b"1FGET DP\r")
+                assert _raw_read_until(fd, PROMPT) == f"1FGET DP\n\r{value}\n\r=> ".encode()
+            finally:
+                os.close(fd)
+        time.sleep(0.3)
+        held = [fd for fd in os.listdir(f"/proc/{link.process.pid}/fd")
+                if os.readlink(f"/proc/{link.process.pid}/fd/{fd}") in ("/dev/ptmx", "/dev/pts/ptmx")]
+        assert len(held) <= 2  # the fresh pty behind the links and at most one closing
+        link.port = serial.Serial(link.device, 9600, timeout=0.05)
+        assert link.lines("1FGET DP") == ["3333"]
+    finally:
+        link.close()
+
+
+def test_two_clients_open_at_once_both_keep_their_output(tmp_path):
+    """Output is dropped only while no client has the device open: a second opener (a terminal
+    watching, a probe) that closes again does not take the first client's replies away."""
+    link = _serve(tmp_path / "store")
+    try:
+        probe = _raw_open(link.device)
+        os.close(probe)
+        assert link.lines("1FGET DP") == ["8500"]
+        link.write(b"1FGET DS\r")
+        time.sleep(0.3)
+        probe = _raw_open(link.device)
+        os.close(probe)
+        assert link.read_until(PROMPT, timeout=10) == b"1FGET DS\n\r1700\n\r=> "
+    finally:
+        link.close()
