@@ -45,8 +45,13 @@ constant below or documented here):
   header answers "\\n\\rERR 2048\\n\\r=> ". Leaving LOOP applies HOLD to the LOOP motors. On
   entering LOOP the motors run at velocity 0 with gain FPG until a control block sets them; a
   motor whose LCPG flag is 0 keeps FPG as its gain. Firmware 4.4 LCT is the HCTL motor command in
-  1/256 units: U = LCT/256 (full duty at ±32512). LFBP reports the plant's last breakaway position
-  in the HCTL frame (0 if none); LFAIN reads 0 (no analog input is modelled).
+  1/256 units: U = LCT/256 (full duty at ±32512). LFBP reports BP (below); LFAIN reads 0 (no analog
+  input is modelled).
+- Breakaway (SPEC.md §3.1): the plant's TorqueSwitch slip is the detection (BDAT is stored and
+  listed but the simulated hand needs no acceleration threshold). BD is 1 once a finger broke away
+  after its last O, TO or HI (those clear BD and BP as they start), BP is the HCTL position of that
+  breakaway (0 when none, clipped to 0..20000). With BS 1 a finger's supervisory motion terminates
+  (HOLD applies) as soon as the finger breaks away during it; LOOP is not affected.
 - The RealTime cycle_hook runs at the start of every cycle, before the control block's time.
 - FLISTV/FLISTAV/PLISTV/PLISTAV lines are "NAME v1 v2 ..."; FLIST/PLIST lines are
   "NAME<padding>description"; FGET/PGET lines are values only (SPEC.md §2 example).
@@ -68,6 +73,7 @@ from math import isnan
 from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
 from bh8_gym.nvstore import NVStore
 from bh8_gym.parameters import (
+    BREAKAWAY_POSITION_MAX,
     FIRMWARE_PROFILES,
     MOTORS,
     SPREAD,
@@ -113,6 +119,8 @@ IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded
 TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
 LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)
+# The motion commands that clear BD and BP as they start (SPEC.md §3.1: "cleared after an O, TO, or HI").
+BREAKAWAY_CLEARING_COMMANDS = ("O", "TO", "HI")
 _EPS = 1e-9
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 
@@ -422,6 +430,7 @@ class Firmware:
         self._initialized = {m: False for m in MOTORS}
         self._status = {m: int(Status.NOT_INITIALIZED) for m in MOTORS}
         self._reported_position = {m: 0 for m in MOTORS}
+        self._breakaway_cleared = [self._plant_breakaway(m) for m in MOTORS]
         for channel in self._channels.values():
             channel.off()
             channel.set_sample(31)
@@ -653,6 +662,11 @@ class Firmware:
         channels = self._channels
         t = self._physics_time
         runs = []
+        if word in BREAKAWAY_CLEARING_COMMANDS:
+            for m in motors:
+                self._breakaway_cleared[m - 1] = self._plant_breakaway(m)
+        # BS stops a finger at a breakaway during this motion (an edge: an earlier one still in BD does not)
+        breakaway_at_start = {m: self._plant_breakaway(m) for m in motors}
         for m in motors:
             v = values[m]
             channel = channels[m]
@@ -698,6 +712,8 @@ class Firmware:
                         strain = self.plant.strain_gauges()
                     sg = int(strain[m - 1])
                     ended = (v["HSG"] < 255 and sg > v["HSG"]) or (v["LSG"] < 255 and sg < v["LSG"])
+                if not ended and v["BS"] and run.kind <= _RUN_VELOCITY and m != SPREAD:
+                    ended = self._plant_breakaway(m) not in (None, breakaway_at_start[m])
                 if not ended and run.kind in (_RUN_POSITION, _RUN_HI_BACKOFF, _RUN_HI_HOME):
                     ended = (
                         channel.profile_done(t)
@@ -791,6 +807,10 @@ class Firmware:
             return self._strain_gauge(m)
         if name == "OD":
             return int(self._odometer[m - 1] // 1000.0)
+        if name == "BD":
+            return int(self._breakaway_detected(m))
+        if name == "BP":
+            return self._breakaway_position(m)
         return self._motor_values[m][self._motor_table[name].stored_name]
 
     def _strain_gauge(self, m: int) -> int:
@@ -1109,13 +1129,26 @@ class Firmware:
             self._reported_position[m] += datum * scale
         return datum
 
-    def _breakaway_position(self, m: int) -> int:
+    # -- breakaway (SPEC.md §3.1), from the plant's public breakaway record
+
+    def _plant_breakaway(self, m: int) -> float | None:
+        """The plant's last breakaway of finger m in plant counts (None: none; the spread has none)."""
         if m == SPREAD:
-            return 0
+            return None
         position = self.plant.breakaway_position(m)
-        if position is None or isnan(position):
+        return None if position is None or isnan(position) else float(position)
+
+    def _breakaway_detected(self, m: int) -> bool:
+        """BD: the plant recorded a breakaway of finger m since its last O, TO or HI."""
+        position = self._plant_breakaway(m)
+        return position is not None and position != self._breakaway_cleared[m - 1]
+
+    def _breakaway_position(self, m: int) -> int:
+        """BP (and LFBP): the HCTL position of that breakaway, 0 when there is none."""
+        if not self._breakaway_detected(m):
             return 0
-        return max(0, min(65535, int(round(position - self._origin[m - 1]))))
+        position = self._plant_breakaway(m) - self._origin[m - 1]
+        return max(0, min(BREAKAWAY_POSITION_MAX, int(round(position))))
 
 
 _HANDLER_NAMES = {"?": "HELP", "A?": "HELP_ALL"}

@@ -815,3 +815,56 @@ def test_two_clients_open_at_once_both_keep_their_output(tmp_path):
         assert link.read_until(PROMPT, timeout=10) == b"1FGET DS\n\r1700\n\r=> "
     finally:
         link.close()
+
+
+# A box between the fingers, heavy enough not to move, that the inner links meet near 37°: a GC
+# at the default MCV breaks all three clutches away there (§9.3.1 TorqueSwitch).
+INNER_LINK_OBSTACLE = "box:0.06x0.10x0.06;mass=20"
+
+
+def _error_code(reply: bytes) -> int | None:
+    """The n of an "ERR n" reply (SPEC.md §2: "\n\rERR n\n\r=> "), else None."""
+    if reply.startswith(b"\n\rERR ") and reply.endswith(b"\n\r=> "):
+        return int(reply[6:-5])
+    return None
+
+
+def _fingers(link: PtyLink, line: str) -> list[list[int]]:
+    return [[int(v) for v in row.split()] for row in link.lines(line)]
+
+
+def test_breakaway_parameters_across_a_breakaway_and_a_reengagement(tmp_path):
+    """SPEC.md §3.1 (BD/BP: manual D3000 AF.00 §5.3.2; BS/BDAT: Barrett's API documentation),
+    through the pty: before any breakaway BD and BP read 0; a GC whose inner links meet the box
+    breaks away, BD reads 1 and BP the position where the inner link stopped, below P because the
+    outer links closed on (§9.3.1); GO re-engages and clears BD and BP; with BS 1 the next GC stops
+    each finger at its breakaway (P = BP), which also shows the clutches engaged again. BD and BP
+    are read-only (ERR 256), BS is a flag (ERR 128 for 2), BDAT a stored advanced parameter; the
+    spread has no breakaway."""
+    link = _serve(tmp_path / "store", "--object", INNER_LINK_OBSTACLE)
+    try:
+        _initialise(link)
+        assert _fingers(link, "GFGET BD BP BS BDAT") == [[0, 0, 0], [0, 0, 0], [0, 0, 0], [100, 100, 100]]
+        assert link.lines("GC", timeout=30) == []
+        detected, breakaway, position = _fingers(link, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        for bp, p in zip(breakaway, position):
+            assert 2000 < bp < p - 1000, (breakaway, position)  # outer links kept closing after it
+        assert "BD 1 1 1" in link.lines("GFLISTV") and f"BP {' '.join(map(str, breakaway))}" in link.lines("GFLISTV")
+        assert _fingers(link, "SFGET BD BP") == [[0], [0]]
+        assert _error_code(link.command("1FSET BD 0")) == 256
+        assert _error_code(link.command("1FSET BP 5")) == 256
+        assert _error_code(link.command("GFSET BS 2")) == 128
+
+        assert link.lines("GO", timeout=30) == []
+        assert _fingers(link, "GFGET BD BP") == [[0, 0, 0], [0, 0, 0]]
+
+        assert link.lines("GFSET BS 1 BDAT 250") == []
+        assert link.lines("GC", timeout=30) == []
+        detected, stopped_at, position = _fingers(link, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        for bp, p, before in zip(stopped_at, position, breakaway):
+            assert abs(p - bp) < 150 and abs(bp - before) < 500, (stopped_at, position, breakaway)
+        assert _fingers(link, "GFGET BS BDAT") == [[1, 1, 1], [250, 250, 250]]
+    finally:
+        link.close()
