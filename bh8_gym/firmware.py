@@ -44,9 +44,11 @@ constant below or documented here):
   reply "\\n\\r=> " and no ERR line (§6.4: "the hand will respond by printing a prompt"). A bad
   header answers "\\n\\rERR 2048\\n\\r=> ". Leaving LOOP applies HOLD to the LOOP motors. On
   entering LOOP the motors run at velocity 0 with gain FPG until a control block sets them; a
-  motor whose LCPG flag is 0 keeps FPG as its gain. Firmware 4.4 LCT is the HCTL motor command in
-  1/256 units: U = LCT/256 (full duty at ±32512). LFBP reports BP (below); LFAIN reads 0 (no analog
-  input is modelled).
+  motor whose LCPG flag is 0 keeps FPG as its gain. Firmware 4.4 LCT is a position-mode datum
+  (SPEC.md §7, from Barrett's API documentation): each control block's LCT is added to the motor's
+  present position and the sum becomes the commanded position, servoed with gain FPG (so the
+  torque is FPG/4 × LCT, saturating at full duty); before the first block an LCT motor holds where
+  it is. LFBP reports BP (below); LFAIN reads 0 (no analog input is modelled).
 - Breakaway (SPEC.md §3.1): the plant's TorqueSwitch slip is the detection (BDAT is stored and
   listed but the simulated hand needs no acceleration threshold). BD is 1 once a finger broke away
   after its last O, TO or HI (those clear BD and BP as they start), BP is the HCTL position of that
@@ -118,7 +120,6 @@ IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded
 # MCV takes about 4.4 s, so only an HI with many IHIT impacts at a huge TSTOP takes longer.
 TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
-LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)
 # The motion commands that clear BD and BP as they start (SPEC.md §3.1: "cleared after an O, TO, or HI").
 BREAKAWAY_CLEARING_COMMANDS = ("O", "TO", "HI")
 _EPS = 1e-9
@@ -1003,7 +1004,7 @@ class Firmware:
             channel = self._channels[m]
             channel.set_sample(values[m]["SAMPLE"])
             if self.profile == "4.4" and layout.flags[m].LCT:
-                channel.torque(0.0)
+                channel.hold(self._position(m), values[m]["FPG"])  # datum 0: stay
             else:
                 channel.velocity(0.0, self._loop_gain[m], loop=True)
             self._status[m] = 0
@@ -1080,7 +1081,8 @@ class Firmware:
                 torque[m] = value
         for m in layout.motors:
             if torque is not None and m in torque:
-                self._channels[m].torque(torque[m] / LCT_SCALE)
+                # SPEC.md §7: LCT is added to the present position; the sum is the commanded position
+                self._channels[m].hold(self._position(m) + torque[m], self._motor_values[m]["FPG"])
             else:
                 self._channels[m].velocity(velocity[m], gain[m], loop=True)
 
