@@ -77,6 +77,8 @@ from bh8_gym.nvstore import NVStore
 from bh8_gym.parameters import (
     BREAKAWAY_POSITION_MAX,
     FIRMWARE_PROFILES,
+    GLOBAL_TABLE,
+    MOTOR_TABLE,
     MOTORS,
     SPREAD,
     coefficient,
@@ -241,6 +243,10 @@ class Firmware:
         #: Called as `loop_entry_hook(firmware, layout)` after a LOOP command has queued its "*"
         #: (`bh8 serve --env` starts the env's episode there); may call `restore(..., keep_io=True)`.
         self.loop_entry_hook = None
+        #: Called as `other_profile_hook(name, profiles)` when a command names a parameter that only
+        #: other firmware profiles have (the reply stays ERR 64, as on a hand of this version);
+        #: `bh8 serve` tells its user which `--firmware` the client wants.
+        self.other_profile_hook = None
         self._motor_table = motor_parameters(profile)
         self._global_table = global_parameters(profile)
         self._dt = float(plant.dt)
@@ -837,6 +843,7 @@ class Firmware:
         for name, text in zip(args[0::2], args[1::2]):
             parameter = table.get(name)
             if parameter is None:
+                self._note_other_profile(name)
                 error |= Status.UNKNOWN_PARAMETER
                 continue
             if parameter.read_only:
@@ -856,8 +863,16 @@ class Firmware:
         return pairs
 
     def _check_names(self, table: dict, names) -> None:
-        if any(name not in table for name in names):
+        unknown = [name for name in names if name not in table]
+        for name in unknown:
+            self._note_other_profile(name)
+        if unknown:
             raise _FirmwareError(Status.UNKNOWN_PARAMETER)
+
+    def _note_other_profile(self, name: str) -> None:
+        profiles = _PARAMETER_PROFILES.get(name)
+        if profiles and self.profile not in profiles and self.other_profile_hook is not None:
+            self.other_profile_hook(name, profiles)
 
     def _cmd_FSET(self, motors, args):
         pairs = self._parse_assignments(self._motor_table, args)
@@ -1154,9 +1169,12 @@ class Firmware:
 
 
 _HANDLER_NAMES = {"?": "HELP", "A?": "HELP_ALL"}
+# Every parameter name -> the firmware profiles that have it (for other_profile_hook).
+_PARAMETER_PROFILES = {p.name: p.profiles for p in MOTOR_TABLE + GLOBAL_TABLE}
 # Attributes a snapshot does not copy: the plant, the store, hooks, the running task and constants.
 _NOT_SNAPSHOT = frozenset(
-    ("plant", "store", "cycle_hook", "loop_entry_hook", "_task", "_motor_table", "_global_table", "_owns_plant", "_channel_list")
+    ("plant", "store", "cycle_hook", "loop_entry_hook", "other_profile_hook", "_task", "_motor_table", "_global_table",
+     "_owns_plant", "_channel_list")
 )
 _SHARED_STATE = ("_loop_layout",)  # immutable after construction; shared, not copied
 

@@ -662,11 +662,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--realtime", action="store_true",
-        help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); "
-             "default: answer as soon as the simulated motion ends (^C still aborts one)",
+        help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); needed by "
+             "clients that time their RealTime loop or their waits by the wall clock; default: answer as "
+             "soon as the simulated motion ends (^C still aborts one; RealTime runs many times faster)",
     )
     parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default=None,
-                        help="firmware profile (default 4.3; with --env use --env-kwargs firmware_profile)")
+                        help="firmware profile (default 4.3). Clients written for firmware 4.4 (Barrett's C++ "
+                             "API 4.4.x, drivers that use LCT, LFBP or LFAIN) need --firmware 4.4: a 4.3 hand "
+                             "answers their 4.4 parameters with ERR 64. With --env use --env-kwargs firmware_profile")
     parser.add_argument(
         "--link", metavar="PATH", default=None,
         help="also make a symlink PATH (e.g. /dev/ttyUSB0, for programs with a hard-wired port name) to a "
@@ -785,6 +788,21 @@ def _run_env(args: argparse.Namespace) -> int:
                  description=f"{args.env} seed {args.seed} {json.dumps(args.env_kwargs or {})}")
 
 
+def _other_profile_note(profile: str):
+    """An `other_profile_hook` that says once per name on stderr why a client got ERR 64."""
+    noted = set()
+
+    def note(name: str, profiles) -> None:
+        if name not in noted:
+            noted.add(name)
+            wanted = " or ".join(profiles)
+            print(f"bh8 serve: the client asked for {name}, a parameter of firmware {wanted}; this hand runs "
+                  f"firmware {profile} and answered ERR 64 (start bh8 serve --firmware {profiles[-1]})",
+                  file=sys.stderr, flush=True)
+
+    return note
+
+
 def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = None, store=None,
           close=shutdown_firmware, description: str | None = None) -> int:
     """Serve `firmware` on a new pty until SIGINT, SIGTERM or SIGHUP: print the device path as the
@@ -798,6 +816,7 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 1
 
+    firmware.other_profile_hook = _other_profile_note(firmware.profile)
     try:
         with handling_signals((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), server.stop_from_signal_handler):
             print(server.device, flush=True)

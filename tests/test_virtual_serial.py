@@ -868,3 +868,20 @@ def test_breakaway_parameters_across_a_breakaway_and_a_reengagement(tmp_path):
         assert _fingers(link, "GFGET BS BDAT") == [[1, 1, 1], [250, 250, 250]]
     finally:
         link.close()
+
+
+def test_a_4_4_parameter_on_a_4_3_hand_is_err_64_and_the_server_says_why(tmp_path):
+    """SPEC.md §7: LCT is a firmware 4.4 parameter; a 4.3 hand answers ERR 64 (unknown parameter),
+    as a real 4.3 hand does, and `bh8 serve` tells its user on stderr to start it with
+    --firmware 4.4 (once per name)."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert _error_code(link.command("1FSET LCT 1")) == 64
+        assert _error_code(link.command("1FGET LCT LFBP")) == 64
+        assert _error_code(link.command("1FGET LCT")) == 64
+        assert _error_code(link.command("1FGET NOPE")) == 64
+    finally:
+        link.close()
+    notes = [line for line in link.process.stderr.read().splitlines() if "a parameter of firmware" in line]
+    assert len(notes) == 2 and "LCT" in notes[0] and "LFBP" in notes[1]
+    assert all("--firmware 4.4" in note for note in notes)
