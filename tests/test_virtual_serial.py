@@ -885,3 +885,43 @@ def test_a_4_4_parameter_on_a_4_3_hand_is_err_64_and_the_server_says_why(tmp_pat
     notes = [line for line in link.process.stderr.read().splitlines() if "a parameter of firmware" in line]
     assert len(notes) == 2 and "LCT" in notes[0] and "LFBP" in notes[1]
     assert all("--firmware 4.4" in note for note in notes)
+
+
+def test_a_client_killed_mid_block_leaves_the_hand_waiting_and_repeated_ctrl_c_recovers(tmp_path):
+    """SPEC.md §2 / §6 (blocks are counted bytes; 0x03 can be data): a client killed after the
+    header and two of a block's six data bytes leaves the hand waiting, as a real hand does, so
+    the next client's first ^C is taken as data. The documented recovery (docs/clients.md): ^C,
+    read, repeat until the reply ends with the prompt; at most the block's size plus one. Our own
+    client does it when it connects."""
+    from bh8_gym.client import BarrettHand
+
+    link = _serve(tmp_path / "store")
+    try:
+        _initialise(link)
+        assert link.lines("GFSET LCV 1 LCPG 1 LFV 0 LFS 0 LFAP 0 LFDP 0") == []
+        link.write(b"GLOOP\r")
+        assert link.read_until(b"*", timeout=10) == b"GLOOP*"
+        link.write(b"C\x05\x30")  # then killed: four data bytes never sent
+        time.sleep(0.3)
+        link.port.close()
+        fd = _raw_open(link.device)
+        try:
+            replies = []
+            for _ in range(7):
+                os.write(fd, b"\x03")
+                replies.append(_raw_read(fd, 0.5))
+                if replies[-1].endswith(PROMPT):
+                    break
+            assert replies[0] == b"" and replies[-1] == b"\n\r=> ", replies  # the first ^C was data
+            assert len(replies) <= 7
+            os.write(fd, b"2FGET DP\r")
+            assert _raw_read_until(fd, PROMPT) == b"2FGET DP\n\r8500\n\r=> "
+            os.write(fd, b"GLOOP\r")
+            assert _raw_read_until(fd, b"*") == b"GLOOP*"
+            os.write(fd, b"C\x05")  # killed again
+        finally:
+            os.close(fd)
+        with BarrettHand(link.device, timeout=2.0) as hand:
+            assert hand.get("DP", "2") == {"DP": [8500]}
+    finally:
+        link.close()
