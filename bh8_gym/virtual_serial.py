@@ -371,13 +371,30 @@ class _Pty:
 def _private_directory() -> str:
     """A new directory only its owner can enter, for the device's symlink: under /dev/shm where
     there is one (the printed device then still starts with /dev/, as pty paths do), else the
-    system's temporary directory."""
-    for parent in ("/dev/shm", None):
+    system's temporary directory. Named after the server's pid, so the directories of servers
+    that were killed (no clean exit removes them) are removed here."""
+    for parent in ("/dev/shm", tempfile.gettempdir()):
         try:
-            return tempfile.mkdtemp(prefix="bh8-serve-", dir=parent)
+            _remove_dead_servers_directories(parent)
+            return tempfile.mkdtemp(prefix=f"bh8-serve-{os.getpid()}-", dir=parent)
         except OSError:
             continue
     raise OSError("cannot make a private directory for the device's symlink")
+
+
+def _remove_dead_servers_directories(parent: str) -> None:
+    for entry in os.scandir(parent):
+        fields = entry.name.split("-")
+        if len(fields) < 4 or fields[:2] != ["bh8", "serve"] or not fields[2].isdigit():
+            continue
+        try:
+            if entry.stat(follow_symlinks=False).st_uid != os.getuid():
+                continue
+            os.kill(int(fields[2]), 0)
+        except ProcessLookupError:
+            shutil.rmtree(entry.path, ignore_errors=True)  # its server is gone
+        except OSError:
+            continue  # alive (another user's pid: PermissionError) or vanished meanwhile
 
 
 class _Stopped(Exception):

@@ -116,14 +116,17 @@ def test_link_symlink_created_and_removed(tmp_path):
 def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
     """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty numbers
     to the next server, so the stale link then points at one of the new server's own ptys. A
-    restart with the same --link must take it over, not refuse it as 'already exists'."""
+    restart with the same --link must take it over, not refuse it as 'already exists'. The killed
+    server's own device symlink (and its private directory) is removed by the next server."""
     link_path = tmp_path / "ttyUSB0"
     first = _serve(tmp_path / "store1", "--link", str(link_path))
     first.port.close()
     first.process.kill()
     first.process.wait(timeout=20)
-    assert os.path.islink(link_path)
-    _check_link_serves_then_goes(_serve(tmp_path / "store2", "--link", str(link_path)), link_path)
+    assert os.path.islink(link_path) and os.path.islink(first.device)
+    second = _serve(tmp_path / "store2", "--link", str(link_path))
+    assert not os.path.lexists(os.path.dirname(first.device))
+    _check_link_serves_then_goes(second, link_path)
 
 
 def test_close_and_reopen_keeps_state(tmp_path):
