@@ -47,9 +47,16 @@ constant below or documented here):
   reply "\\n\\r=> " and no ERR line (§6.4: "the hand will respond by printing a prompt"). A bad
   header answers "\\n\\rERR 2048\\n\\r=> ". Leaving LOOP applies HOLD to the LOOP motors. On
   entering LOOP the motors run at velocity 0 with gain FPG until a control block sets them; a
-  motor whose LCPG flag is 0 keeps FPG as its gain. Firmware 4.4 LCT is the HCTL motor command in
-  1/256 units: U = LCT/256 (full duty at ±32512). LFBP reports the plant's last breakaway position
-  in the HCTL frame (0 if none); LFAIN reads 0 (no analog input is modelled).
+  motor whose LCPG flag is 0 keeps FPG as its gain. Firmware 4.4 LCT is a position-mode datum
+  (SPEC.md §7, from Barrett's API documentation): each control block's LCT is added to the motor's
+  present position and the sum becomes the commanded position, servoed with gain FPG (so the
+  torque is FPG/4 × LCT, saturating at full duty); before the first block an LCT motor holds where
+  it is. LFBP reports BP (below); LFAIN reads 0 (no analog input is modelled).
+- Breakaway (SPEC.md §3.1): the plant's TorqueSwitch slip is the detection (BDAT is stored and
+  listed but the simulated hand needs no acceleration threshold). BD is 1 once a finger broke away
+  after its last O, TO or HI (those clear BD and BP as they start), BP is the HCTL position of that
+  breakaway (0 when none, clipped to 0..20000). With BS 1 a finger's supervisory motion terminates
+  (HOLD applies) as soon as the finger breaks away during it; LOOP is not affected.
 - The RealTime cycle_hook runs at the start of every cycle, before the control block's time.
 - FLISTV/FLISTAV/PLISTV/PLISTAV lines are "NAME v1 v2 ..."; FLIST/PLIST lines are
   "NAME<padding>description"; FGET/PGET lines are values only (SPEC.md §2 example).
@@ -71,7 +78,10 @@ from math import exp, isnan
 from bh8_gym.motion_control import ACCEL_SCALE, HOLD, VELOCITY_SCALE, MotorChannel
 from bh8_gym.nvstore import NVStore
 from bh8_gym.parameters import (
+    BREAKAWAY_POSITION_MAX,
     FIRMWARE_PROFILES,
+    GLOBAL_TABLE,
+    MOTOR_TABLE,
     MOTORS,
     SPREAD,
     coefficient,
@@ -121,7 +131,8 @@ IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded
 # MCV takes about 4.4 s, so only an HI with many IHIT impacts at a huge TSTOP takes longer.
 TRANSACT_LIMIT_S = 300.0
 MOTION_ARGUMENT_RANGE = (0, 20000)  # §5.2.1 M, IO, IC arguments
-LCT_SCALE = 256.0  # firmware 4.4 LCT: U = LCT / 256 (our mapping, see module docstring)
+# The motion commands that clear BD and BP as they start (SPEC.md §3.1: "cleared after an O, TO, or HI").
+BREAKAWAY_CLEARING_COMMANDS = ("O", "TO", "HI")
 _EPS = 1e-9
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 
@@ -263,6 +274,10 @@ class Firmware:
         #: Called as `loop_entry_hook(firmware, layout)` after a LOOP command has queued its "*"
         #: (`bh8 serve --env` starts the env's episode there); may call `restore(..., keep_io=True)`.
         self.loop_entry_hook = None
+        #: Called as `other_profile_hook(name, profiles)` when a command names a parameter that only
+        #: other firmware profiles have (the reply stays ERR 64, as on a hand of this version);
+        #: `bh8 serve` tells its user which `--firmware` the client wants.
+        self.other_profile_hook = None
         self._motor_table = motor_parameters(profile)
         self._global_table = global_parameters(profile)
         self._dt = float(plant.dt)
@@ -459,6 +474,7 @@ class Firmware:
         self._initialized = {m: False for m in MOTORS}
         self._status = {m: int(Status.NOT_INITIALIZED) for m in MOTORS}
         self._reported_position = {m: 0 for m in MOTORS}
+        self._breakaway_cleared = [self._plant_breakaway(m) for m in MOTORS]
         for channel in self._channels.values():
             channel.off()
             channel.set_sample(31)
@@ -698,6 +714,11 @@ class Firmware:
         channels = self._channels
         t = self._physics_time
         runs = []
+        if word in BREAKAWAY_CLEARING_COMMANDS:
+            for m in motors:
+                self._breakaway_cleared[m - 1] = self._plant_breakaway(m)
+        # BS stops a finger at a breakaway during this motion (an edge: an earlier one still in BD does not)
+        breakaway_at_start = {m: self._plant_breakaway(m) for m in motors}
         for m in motors:
             v = values[m]
             channel = channels[m]
@@ -747,6 +768,8 @@ class Firmware:
                     sg = int(strain[m - 1])
                     ended = (v["HSG"] < 255 and sg > v["HSG"]) or (v["LSG"] < 255 and sg < v["LSG"])
                 goal = False
+                if not ended and v["BS"] and run.kind <= _RUN_VELOCITY and m != SPREAD:
+                    ended = self._plant_breakaway(m) not in (None, breakaway_at_start[m])
                 if not ended and run.kind in _POSITION_RUNS:
                     ended = goal = (
                         channel.profile_done(t)
@@ -844,6 +867,10 @@ class Firmware:
             return self._strain_gauge(m)
         if name == "OD":
             return int(self._odometer[m - 1] // 1000.0)
+        if name == "BD":
+            return int(self._breakaway_detected(m))
+        if name == "BP":
+            return self._breakaway_position(m)
         return self._motor_values[m][self._motor_table[name].stored_name]
 
     def _strain_gauge(self, m: int) -> int:
@@ -869,6 +896,7 @@ class Firmware:
         for name, text in zip(args[0::2], args[1::2]):
             parameter = table.get(name)
             if parameter is None:
+                self._note_other_profile(name)
                 error |= Status.UNKNOWN_PARAMETER
                 continue
             if parameter.read_only:
@@ -888,8 +916,16 @@ class Firmware:
         return pairs
 
     def _check_names(self, table: dict, names) -> None:
-        if any(name not in table for name in names):
+        unknown = [name for name in names if name not in table]
+        for name in unknown:
+            self._note_other_profile(name)
+        if unknown:
             raise _FirmwareError(Status.UNKNOWN_PARAMETER)
+
+    def _note_other_profile(self, name: str) -> None:
+        profiles = _PARAMETER_PROFILES.get(name)
+        if profiles and self.profile not in profiles and self.other_profile_hook is not None:
+            self.other_profile_hook(name, profiles)
 
     def _cmd_FSET(self, motors, args):
         pairs = self._parse_assignments(self._motor_table, args)
@@ -1036,7 +1072,7 @@ class Firmware:
             channel = self._channels[m]
             channel.set_sample(values[m]["SAMPLE"])
             if self.profile == "4.4" and layout.flags[m].LCT:
-                channel.torque(0.0)
+                channel.hold(self._position(m), values[m]["FPG"])  # datum 0: stay
             else:
                 channel.velocity(0.0, self._loop_gain[m], loop=True)
             self._status[m] = 0
@@ -1113,7 +1149,8 @@ class Firmware:
                 torque[m] = value
         for m in layout.motors:
             if torque is not None and m in torque:
-                self._channels[m].torque(torque[m] / LCT_SCALE)
+                # SPEC.md §7: LCT is added to the present position; the sum is the commanded position
+                self._channels[m].hold(self._position(m) + torque[m], self._motor_values[m]["FPG"])
             else:
                 self._channels[m].velocity(velocity[m], gain[m], loop=True)
 
@@ -1162,19 +1199,35 @@ class Firmware:
             self._reported_position[m] += datum * scale
         return datum
 
-    def _breakaway_position(self, m: int) -> int:
+    # -- breakaway (SPEC.md §3.1), from the plant's public breakaway record
+
+    def _plant_breakaway(self, m: int) -> float | None:
+        """The plant's last breakaway of finger m in plant counts (None: none; the spread has none)."""
         if m == SPREAD:
-            return 0
+            return None
         position = self.plant.breakaway_position(m)
-        if position is None or isnan(position):
+        return None if position is None or isnan(position) else float(position)
+
+    def _breakaway_detected(self, m: int) -> bool:
+        """BD: the plant recorded a breakaway of finger m since its last O, TO or HI."""
+        position = self._plant_breakaway(m)
+        return position is not None and position != self._breakaway_cleared[m - 1]
+
+    def _breakaway_position(self, m: int) -> int:
+        """BP (and LFBP): the HCTL position of that breakaway, 0 when there is none."""
+        if not self._breakaway_detected(m):
             return 0
-        return max(0, min(65535, int(round(position - self._origin[m - 1]))))
+        position = self._plant_breakaway(m) - self._origin[m - 1]
+        return max(0, min(BREAKAWAY_POSITION_MAX, int(round(position))))
 
 
 _HANDLER_NAMES = {"?": "HELP", "A?": "HELP_ALL"}
+# Every parameter name -> the firmware profiles that have it (for other_profile_hook).
+_PARAMETER_PROFILES = {p.name: p.profiles for p in MOTOR_TABLE + GLOBAL_TABLE}
 # Attributes a snapshot does not copy: the plant, the store, hooks, the running task and constants.
 _NOT_SNAPSHOT = frozenset(
-    ("plant", "store", "cycle_hook", "loop_entry_hook", "_task", "_motor_table", "_global_table", "_owns_plant", "_channel_list")
+    ("plant", "store", "cycle_hook", "loop_entry_hook", "other_profile_hook", "_task", "_motor_table", "_global_table",
+     "_owns_plant", "_channel_list")
 )
 _SHARED_STATE = ("_loop_layout",)  # immutable after construction; shared, not copied
 

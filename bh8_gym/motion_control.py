@@ -17,28 +17,23 @@ turns U into a drive (velocity target in counts per second, torque fraction |U|/
   target is the profile velocity plus the error divided by the physics step, i.e. the velocity
   that closes the error within one step and no more. The HCTL samples at 3.9 kHz, the physics at
   500 Hz: a target that overshoots within a step makes the discrete loop unstable at high gains.
-- HOLD: POSITION at a fixed set point.
+- HOLD: POSITION at a fixed set point (also firmware 4.4 LCT: present position + LCT, SPEC.md §7).
 - VELOCITY (TC/TO, §9.2.2) and LOOP (RealTime, §6.1): U = K/4 × (commanded − actual velocity),
   velocities in counts per sample; the velocity target is the commanded velocity. So the stall
   torque grows with the commanded velocity (§9.3.1 Figure 25).
-- TORQUE (firmware 4.4 LCT): U given directly.
 
 Plain floats and no allocation per step: `drive` is called once per motor per physics step.
 """
 from __future__ import annotations
 
-from math import copysign, nan, sqrt
+from math import nan, sqrt
 
 HCTL_CLOCK_HZ = 2.0e6  # §5.3.4 SAMPLE note: "The HCTL-1100 clock speed used in the BH8-series Hand is 2.00 MHz"
 U_MAX = 127.0  # HCTL motor command register saturates at ±127 (full PWM duty)
 VELOCITY_SCALE = 16.0  # velocity parameters are 1/16 count per sample (12.4 fixed point)
 ACCEL_SCALE = 256.0  # ACCEL is 1/256 count per sample² (8.8 fixed point)
-# TORQUE mode velocity target, counts/s. Our choice: far above the motor's no-load speed (the plant
-# brief's 54,000 counts/s), so only the torque limit |U|/127 shapes the motion, as with a PWM duty.
-DIRECT_DRIVE_VELOCITY_CPS = 1.0e6
-
-OFF, POSITION, HOLD, VELOCITY, LOOP, TORQUE = range(6)
-MODE_NAMES = ("OFF", "POSITION", "HOLD", "VELOCITY", "LOOP", "TORQUE")
+OFF, POSITION, HOLD, VELOCITY, LOOP = range(5)
+MODE_NAMES = ("OFF", "POSITION", "HOLD", "VELOCITY", "LOOP")
 
 
 def sample_period(sample: int) -> float:
@@ -89,11 +84,6 @@ class MotorChannel:
         self.mode = LOOP if loop else VELOCITY
         self.velocity_command = float(velocity_command)
         self.gain = gain / 4.0
-
-    def torque(self, motor_command: float) -> None:
-        """Drive with the motor command U directly (firmware 4.4 LCT)."""
-        self.mode = TORQUE
-        self.motor_command = max(-U_MAX, min(U_MAX, float(motor_command)))
 
     def move(self, time: float, start: float, target: float, max_velocity: float, accel: float, gain: int) -> None:
         """Trapezoidal move from `start` to `target` counts starting at `time` seconds.
@@ -181,9 +171,6 @@ class MotorChannel:
             target_velocity = self.velocity_command / self.period
         elif mode == OFF:
             return 0.0, nan
-        elif mode == TORQUE:
-            u = self.motor_command
-            return copysign(DIRECT_DRIVE_VELOCITY_CPS, u) if u else 0.0, abs(u) / U_MAX
         else:  # POSITION, HOLD
             if mode == HOLD:
                 desired, desired_velocity = self.set_point, 0.0

@@ -2,13 +2,15 @@
 
 Sources: manual §5.3.1-§5.3.4 (motor parameters), §5.4.1-§5.4.3 (global parameters), §6.3
 Tables 4-5; SPEC.md §3 (coefficient ranges 0..255 with 0 scaled as 1), §7 (4.4 adds LCT, LFBP,
-LFAIN). The table order is the manual's order, which is the order FLIST/FLISTV/PLIST print in.
+LFAIN), §3.1 (the breakaway parameters BS, BD, BP, BDAT, which our copy of the manual lacks; where
+each fact comes from is noted there). The table order is the manual's order, which is the order
+FLIST/FLISTV/PLIST print in.
 
 List membership (§5.3.4, §5.2.5): standard parameters (§5.3.1-§5.3.3, §5.4.1-§5.4.2) are listed by
 FLIST/FLISTV and PLIST/PLISTV; advanced ones (§5.3.4, §5.4.3) only by FLISTA/FLISTAV and
 PLISTA/PLISTAV, which list the standard ones too.
 
-Read-only parameters (status: OD P S SG, TEMP PTEMP UPSECS SN) are "live": the firmware computes
+Read-only parameters (status: BD BP OD P S SG, TEMP PTEMP UPSECS SN) are "live": the firmware computes
 their values; they have no default and are not part of a stored parameter set. MSG is an alias of
 HSG (§5.3.1): one stored value, both names read and write it.
 """
@@ -22,6 +24,8 @@ SPREAD = 4
 BAUD_VALUES = (6, 12, 24, 48, 96, 192, 384)  # §5.4.1: baud rate / 100
 UINT32_MAX = 4_294_967_295  # "0 to 4 billion" counters (OD, UPSECS)
 COEFFICIENTS = ("LCVC", "LFVC", "LFDPC")  # Table 4 coefficients: 0 is scaled as 1 (SPEC.md §3)
+BREAKAWAY_POSITION_MAX = 20000  # BP "Values: 0 or 20000" (SPEC.md §3.1), i.e. 0 to 20000 counts
+BDAT_DEFAULT = 100  # our choice (SPEC.md §3.1); the simulated hand detects breakaway from the plant
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,8 @@ _FLAG = (0, 1)
 _44 = ("4.4",)
 
 MOTOR_TABLE: tuple[Parameter, ...] = (
-    # §5.3.1 Movement
+    # §5.3.1 Movement (BS: SPEC.md §3.1)
+    _motor("BS", "Breakaway Stop", *_FLAG, 0),
     _motor("DP", "Default Position", 0, 65535, 8500, 1575),
     _motor("DS", "Default Step", 0, 65535, 1700, 315),
     _motor("HSG", "Highest Strain Gauge Value", 0, 256, 256),
@@ -72,7 +77,9 @@ MOTOR_TABLE: tuple[Parameter, ...] = (
     _motor("MOV", "Maximum Open Velocity", 16, 4080, 100, 60),
     _motor("MCV", "Maximum Close Velocity", 16, 4080, 100, 60),
     _motor("MSG", "Maximum Strain Gauge", 0, 256, 256, alias_of="HSG"),
-    # §5.3.2 Status (read-only, computed by the firmware)
+    # §5.3.2 Status (read-only, computed by the firmware; BD, BP: SPEC.md §3.1)
+    _motor("BD", "Breakaway-Detected Flag", *_FLAG, read_only=True),
+    _motor("BP", "Breakaway Position", 0, BREAKAWAY_POSITION_MAX, read_only=True),
     _motor("OD", "Odometer", 0, UINT32_MAX, read_only=True),
     _motor("P", "Position", -32768, 65535, read_only=True),
     _motor("S", "Status", 0, 32767, read_only=True),
@@ -92,6 +99,8 @@ MOTOR_TABLE: tuple[Parameter, ...] = (
     _motor("LFAIN", "Loop Feedback Analog Input", *_FLAG, 0, profiles=_44),
     # §5.3.4 Advanced
     _motor("ACCEL", "Acceleration", 0, 65535, 4, 2, advanced=True),
+    # SPEC.md §3.1: range and default are our choice (not in the sources we could read)
+    _motor("BDAT", "Breakaway Detection Acceleration Threshold", 0, 65535, BDAT_DEFAULT, advanced=True),
     _motor("CT", "Close Target", 0, 65535, 17000, 3150, advanced=True),
     _motor("EN", "Enabled", *_FLAG, 1, advanced=True),
     _motor("FDZ", "Filter Derivative Zero", 0, 255, 0, advanced=True),

@@ -24,8 +24,19 @@ take a buffer's worth at once; the wall clock paced), and never more than `INPUT
 ahead of what the firmware has consumed. The rest waits in the pty, whose writer then blocks, as
 a host's writes block on a real serial line: a flood of RealTime blocks cannot grow the server.
 
-The follower stays open in the server for its whole life, so a client may close and reopen the
-device without the server seeing a hang-up and without losing the hand's state.
+A client may close and reopen the device without losing the hand's state. Like a real port, a
+closed device receives nothing and a fresh open starts empty: nothing a client left unread (the
+reply to a ^C sent just before closing, a prompt it stopped reading) reaches the next open, however
+fast it follows (Barrett's C++ API closes and reopens at once to discard buffers when it changes
+the baud rate). A pty cannot drop bytes when its client closes it, so on Linux the printed device
+is a symlink (in a private directory under /dev/shm) to a pty no client has opened yet: as soon as a
+client opens it, inotify wakes the server (`_OpenWatch`), which points the symlink (and `--link`)
+at a fresh pty, and the next open gets that one. The hand answers on the pty its input came from;
+a pty is closed when its client closes it (the leader's hang-up tells), and what was left in it
+goes with it. Elsewhere the device is the pty itself, held open by the server, and unread bytes
+wait for the next reader. The hand itself keeps its state: a client killed in the middle of a
+RealTime control block leaves the firmware waiting for that block's data bytes, as a real hand does
+(docs/clients.md says how to recover).
 
 `--env ID --seed N [--env-kwargs JSON]` serves a Gymnasium environment's own firmware
 (`gym.make(ID, **kwargs).unwrapped.firmware`: its plant, scene, arm and fresh store), so a host
@@ -43,11 +54,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
+import ctypes.util
+import errno
 import json
 import os
 import select
+import shutil
 import signal
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -97,8 +113,9 @@ def default_state_dir() -> Path:
 # palm, where a GC closes on it.
 OBJECT_SCENE_WRIST_POSITION = (0.0, 0.0, 0.0)
 OBJECT_SCENE_WRIST_ORIENTATION = (0.0, 0.0, 0.0, 1.0)
-# Gap between the palm face (kinematics.DW from the wrist) and an object placed without @X,Y,Z;
-# small enough that it settles onto the palm at once.
+# Gap between the top of the knuckle housings (hand_urdf.KNUCKLE_HEIGHT proud of the palm face,
+# hand_urdf.PALM_TOP from the wrist) and an object placed without @X,Y,Z: one narrower than the
+# gap between the housings drops the rest onto the palm face (15 mm, 55 ms) and settles at once.
 PALM_CLEARANCE_M = 0.002
 OBJECT_SPEC_HELP = (
     "box:WxDxH, sphere:R, cylinder:RxL, capsule:RxL (metres), FILE.urdf[:SCALE] or "
@@ -141,10 +158,11 @@ def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False):
 
 
 def _rest_on_palm(plant, body: int) -> None:
-    """Move `body` so its bounding box sits centred on the palm, PALM_CLEARANCE_M above it."""
+    """Move `body` so its bounding box sits centred over the palm, PALM_CLEARANCE_M above the
+    knuckle housings (it cannot start inside them)."""
     import pybullet
 
-    from bh8_gym.kinematics import DW
+    from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
 
     cid = plant.client
     lows, highs = [], []
@@ -155,7 +173,7 @@ def _rest_on_palm(plant, body: int) -> None:
     low = [min(v[i] for v in lows) for i in range(3)]
     high = [max(v[i] for v in highs) for i in range(3)]
     position, orientation = pybullet.getBasePositionAndOrientation(body, physicsClientId=cid)
-    shift = (-(low[0] + high[0]) / 2.0, -(low[1] + high[1]) / 2.0, DW + PALM_CLEARANCE_M - low[2])
+    shift = (-(low[0] + high[0]) / 2.0, -(low[1] + high[1]) / 2.0, PALM_TOP + KNUCKLE_HEIGHT + PALM_CLEARANCE_M - low[2])
     pybullet.resetBasePositionAndOrientation(
         body, [c + d for c, d in zip(position, shift)], orientation, physicsClientId=cid
     )
@@ -272,6 +290,133 @@ def open_raw_pty() -> tuple[int, int, str]:
     return leader, follower, path
 
 
+class _OpenWatch:
+    """Wakes the server when a client opens the pty follower (inotify IN_OPEN on the device).
+
+    Only a wake-up: inotify merges identical events that are not yet read, so it cannot count
+    clients; the leader's hang-up (the kernel's count) says whether any client has the device open.
+    Linux only; `create` returns None where inotify is missing.
+    """
+
+    _IN_OPEN = 0x20
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    @classmethod
+    def create(cls, path: str) -> "_OpenWatch | None":
+        if not sys.platform.startswith("linux"):
+            return None
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+            fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        except (OSError, AttributeError):
+            return None
+        if fd < 0:
+            return None
+        if libc.inotify_add_watch(fd, os.fsencode(path), cls._IN_OPEN) < 0:
+            os.close(fd)
+            return None
+        return cls(fd)
+
+    def drain(self) -> None:
+        """Read the pending events (their content does not matter)."""
+        while True:
+            try:
+                if not os.read(self.fd, 4096):
+                    return
+            except BlockingIOError:
+                return
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+class _Pty:
+    """One pseudo-terminal: its leader, what it owes its client, whether a client has it open.
+
+    With an open watch (Linux) the server holds no follower fd, so the leader hangs up while no
+    client has the device open; without one the follower stays open and the pty counts as
+    always connected."""
+
+    def __init__(self):
+        self.leader, self.follower, self.device = open_raw_pty()
+        self.backlog = bytearray()
+        self.polled_events = 0  # the poll events registered for the leader while a client has it open
+        self.watch = _OpenWatch.create(self.device)
+        self.client = self.watch is None
+        if self.watch is not None:
+            self._hangup = select.poll()
+            self._hangup.register(self.leader, 0)
+            os.close(self.follower)
+            self.follower = -1
+
+    def client_present(self) -> bool:
+        """Whether a client has the device open now (reads the open watch's wake-ups)."""
+        if self.watch is None:
+            return True
+        self.watch.drain()
+        return not self._hangup.poll(0)
+
+    def read(self, limit: int) -> bytes:
+        """At most `limit` bytes the client wrote."""
+        chunks = []
+        while limit > 0:
+            try:
+                chunk = os.read(self.leader, min(limit, _READ_CHUNK))
+            except BlockingIOError:
+                break
+            except OSError as error:
+                if error.errno != errno.EIO:
+                    raise
+                break  # no client has the device open (what the last one wrote was read first)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            limit -= len(chunk)
+        return b"".join(chunks)
+
+    def close(self) -> None:
+        if self.watch is not None:
+            self.watch.close()
+            self.watch = None
+        for fd in (self.leader, self.follower):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.leader = self.follower = -1
+
+
+def _private_directory() -> str:
+    """A new directory only its owner can enter, for the device's symlink: under /dev/shm where
+    there is one (the printed device then still starts with /dev/, as pty paths do), else the
+    system's temporary directory. Named after the server's pid, so the directories of servers
+    that were killed (no clean exit removes them) are removed here."""
+    for parent in ("/dev/shm", tempfile.gettempdir()):
+        try:
+            _remove_dead_servers_directories(parent)
+            return tempfile.mkdtemp(prefix=f"bh8-serve-{os.getpid()}-", dir=parent)
+        except OSError:
+            continue
+    raise OSError("cannot make a private directory for the device's symlink")
+
+
+def _remove_dead_servers_directories(parent: str) -> None:
+    for entry in os.scandir(parent):
+        fields = entry.name.split("-")
+        if len(fields) < 4 or fields[:2] != ["bh8", "serve"] or not fields[2].isdigit():
+            continue
+        try:
+            if entry.stat(follow_symlinks=False).st_uid != os.getuid():
+                continue
+            os.kill(int(fields[2]), 0)
+        except ProcessLookupError:
+            shutil.rmtree(entry.path, ignore_errors=True)  # its server is gone
+        except OSError:
+            continue  # alive (another user's pid: PermissionError) or vanished meanwhile
+
+
 class _Stopped(Exception):
     """Raised by the signal handler to abandon a firmware run in progress."""
 
@@ -292,24 +437,33 @@ class PtyServer:
         self._line_credit = float(INPUT_BUFFER_BYTES)  # bytes the line may deliver now
         self._line_clock: float | None = None  # the hand's time of the last credit
         self._counters_due: float | None = None  # monotonic time by which the counters must be saved
-        self._leader, self._follower, self.device = open_raw_pty()
         self._wake_read, self._wake_write = os.pipe()
         os.set_blocking(self._wake_read, False)
         os.set_blocking(self._wake_write, False)
         self._stopping = False
-        self._backlog = bytearray()
         self._poller = select.poll()
         self._poller.register(self._wake_read, select.POLLIN)
-        self._poller.register(self._leader, select.POLLIN)
-        self._leader_events = select.POLLIN
         self._running_firmware = False
+        self._ptys: list[_Pty] = []
+        self._pending_input = bytearray()  # what the client of a pty closed since wrote before closing
+        self._links: list[Path] = []  # the printed device (Linux) and --link: all at self._fresh
+        self._link_dir: str | None = None
         self.link = None
-        if link is not None:
-            try:
+        try:
+            self._fresh = self._add_pty()
+            self._speaker: _Pty | None = self._fresh  # the pty the last input came from
+            if self._fresh.watch is None:
+                self.device = self._fresh.device
+            else:
+                self._link_dir = _private_directory()
+                self.device = os.path.join(self._link_dir, "ttyBH8")
+                os.symlink(self._fresh.device, self.device)
+                self._links.append(Path(self.device))
+            if link is not None:
                 self._make_link(Path(link))
-            except BaseException:
-                self._close_fds()
-                raise
+        except BaseException:
+            self._close_fds()
+            raise
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -339,33 +493,77 @@ class PtyServer:
             pass  # the pipe is full or closed: the loop is waking up or gone already
 
     def close(self) -> None:
-        """Remove the --link symlink (if still ours) and close the pty."""
-        if self.link is not None:
+        """Remove the device's and --link's symlinks (if still ours) and close the ptys."""
+        ours = {pty.device for pty in self._ptys}
+        for path in self._links:
             try:
-                if os.readlink(self.link) == self.device:
-                    os.unlink(self.link)
+                if os.readlink(path) in ours:
+                    os.unlink(path)
             except OSError:
                 pass  # already gone or replaced by someone else: leave it
-            self.link = None
+        self._links = []
+        self.link = None
         self._close_fds()
 
     def _close_fds(self) -> None:
-        for fd in (self._leader, self._follower, self._wake_read, self._wake_write):
+        for pty in self._ptys:
+            pty.close()
+        self._ptys = []
+        if self._link_dir is not None:
+            shutil.rmtree(self._link_dir, ignore_errors=True)
+            self._link_dir = None
+        for fd in (self._wake_read, self._wake_write):
             try:
                 os.close(fd)
             except OSError:
                 pass
-        self._leader = self._follower = self._wake_read = self._wake_write = -1
+        self._wake_read = self._wake_write = -1
 
     def _make_link(self, path: Path) -> None:
-        # Left behind by a server that was killed: dangling, or pointing at the pty just opened
-        # (the kernel reuses the freed pty's number; no live server can hold this one).
-        if path.is_symlink() and (not path.exists() or os.readlink(path) == self.device):
+        # Left behind by a server that was killed: dangling, or pointing at a pty just opened here
+        # (the kernel reuses the freed pty numbers; no live server can hold these).
+        if path.is_symlink() and (not path.exists() or os.readlink(path) == self._fresh.device):
             path.unlink()
         elif path.exists() or path.is_symlink():
             raise FileExistsError(f"--link {path}: already exists; remove it or choose another path")
-        os.symlink(self.device, path)
+        os.symlink(self._fresh.device, path)
+        self._links.append(path)
         self.link = path
+
+    def _add_pty(self) -> _Pty:
+        pty = _Pty()
+        self._ptys.append(pty)
+        self._poller.register(pty.leader if pty.watch is None else pty.watch.fd, select.POLLIN)
+        return pty
+
+    def _replace_fresh_pty(self) -> None:
+        """The fresh pty got a client: point the device's and --link's symlinks at a new one, so
+        the next open (this client reopening to discard buffers, the next program) starts empty
+        whatever this client leaves unread. Each link is replaced atomically (rename)."""
+        fresh = self._add_pty()
+        for path in self._links:
+            temporary = path.with_name(f".{path.name}.{os.getpid()}")
+            try:
+                temporary.unlink(missing_ok=True)
+                os.symlink(fresh.device, temporary)
+                os.replace(temporary, path)
+            except OSError as error:
+                print(f"bh8 serve: cannot repoint {path}: {error}", file=sys.stderr, flush=True)
+        self._fresh = fresh
+
+    def _drop_pty(self, pty: _Pty) -> None:
+        """Close a pty whose client closed it; what it still held for a reader goes with it. What
+        the client wrote before closing still reaches the hand (the replies go nowhere)."""
+        self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
+        for fd in (pty.leader, pty.watch.fd if pty.watch is not None else -1):
+            try:
+                self._poller.unregister(fd)
+            except (KeyError, ValueError):
+                pass
+        pty.close()
+        self._ptys.remove(pty)
+        if self._speaker is pty:
+            self._speaker = None
 
     # -- the two serving loops -------------------------------------------------------------
 
@@ -462,15 +660,38 @@ class PtyServer:
             # Input waits for the line's next byte (paced: the wall clock refills the credit).
             refill = (1.0 - self._line_credit) / self._line_bytes_per_second()
             timeout_s = refill if timeout_s is None else min(timeout_s, refill)
-        events = (select.POLLIN if room else 0) | (select.POLLOUT if self._backlog else 0)
-        if events != self._leader_events:
-            self._poller.modify(self._leader, events)
-            self._leader_events = events
+        for pty in self._ptys:
+            events = (select.POLLIN if room else 0) | (select.POLLOUT if pty.backlog else 0)
+            if pty.client and events != pty.polled_events:
+                self._poller.modify(pty.leader, events)
+                pty.polled_events = events
         self._poller.poll(None if timeout_s is None else timeout_s * 1000.0)
         try:
             os.read(self._wake_read, 64)
         except BlockingIOError:
             pass
+        self._follow_clients()
+
+    def _follow_clients(self) -> None:
+        """Track which ptys a client has open: a pty that got its first client is replaced by a
+        fresh one behind the symlinks; one whose client closed is closed (on a pty the unread
+        bytes would wait for the next reader). While a client has it open the leader is polled
+        (without a client it would report a hang-up at every poll)."""
+        for pty in tuple(self._ptys):
+            if pty.watch is None:
+                continue
+            present = pty.client_present()
+            if present == pty.client:
+                continue
+            pty.client = present
+            if present:
+                self._poller.register(pty.leader, select.POLLIN)
+                pty.polled_events = select.POLLIN
+                if pty is self._fresh:
+                    self._replace_fresh_pty()
+            else:
+                self._poller.unregister(pty.leader)
+                self._drop_pty(pty)
 
     def _line_bytes_per_second(self) -> float:
         return self.firmware.baud / self._bits_per_byte
@@ -494,35 +715,41 @@ class PtyServer:
             self.firmware.write(data)
 
     def _read_input(self) -> bytes:
+        """Input from one pty at a time (a closed one's last bytes first), so the hand answers on
+        the pty each command came from; no more than the line delivered (`_input_room`)."""
+        self._follow_clients()
         room = self._input_room()
-        chunks = []
-        while room > 0:
-            try:
-                chunk = os.read(self._leader, min(room, _READ_CHUNK))
-            except BlockingIOError:
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-            room -= len(chunk)
-        data = b"".join(chunks)
+        data = b""
+        if self._pending_input:
+            data = bytes(self._pending_input[:room])
+            del self._pending_input[:room]
+            self._speaker = None  # its pty is closed: the replies go nowhere, as on a closed port
+        elif room > 0:
+            for pty in self._ptys:
+                data = pty.read(room)
+                if data:
+                    self._speaker = pty
+                    break
         self._line_credit -= len(data)
         return data
 
     def _queue_output(self, data: bytes) -> None:
-        if data:
-            self._backlog += data
-            overflow = len(self._backlog) - OUTPUT_BACKLOG_LIMIT
+        self._follow_clients()
+        pty = self._speaker
+        if data and pty is not None and pty.client:
+            pty.backlog += data
+            overflow = len(pty.backlog) - OUTPUT_BACKLOG_LIMIT
             if overflow > 0:
-                del self._backlog[:overflow]
+                del pty.backlog[:overflow]
 
     def _flush_output(self) -> None:
-        while self._backlog:
-            try:
-                written = os.write(self._leader, self._backlog)
-            except BlockingIOError:
-                return
-            del self._backlog[:written]
+        for pty in self._ptys:
+            while pty.backlog:
+                try:
+                    written = os.write(pty.leader, pty.backlog)
+                except BlockingIOError:
+                    break
+                del pty.backlog[:written]
 
 
 # -- the `bh8 serve` subcommand ---------------------------------------------------------------
@@ -542,14 +769,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--realtime", action="store_true",
-        help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); "
-             "default: answer as soon as the simulated motion ends (^C still aborts one)",
+        help="pace simulated time to the wall clock (a GC takes about 1 s; ^C aborts a motion); needed by "
+             "clients that time their RealTime loop or their waits by the wall clock; default: answer as "
+             "soon as the simulated motion ends (^C still aborts one; RealTime runs many times faster)",
     )
     parser.add_argument("--firmware", choices=FIRMWARE_PROFILES, default=None,
-                        help="firmware profile (default 4.3; with --env use --env-kwargs firmware_profile)")
+                        help="firmware profile (default 4.3). Clients written for firmware 4.4 (Barrett's C++ "
+                             "API 4.4.x, drivers that use LCT, LFBP or LFAIN) need --firmware 4.4: a 4.3 hand "
+                             "answers their 4.4 parameters with ERR 64. With --env use --env-kwargs firmware_profile")
     parser.add_argument(
         "--link", metavar="PATH", default=None,
-        help="also make a symlink PATH -> the device (e.g. /dev/ttyUSB0), removed on exit",
+        help="also make a symlink PATH (e.g. /dev/ttyUSB0, for programs with a hard-wired port name) to a "
+             "pty of this hand; every open of PATH gets a fresh pty, so nothing a program left unread "
+             "survives its reopening the port, however fast (docs/clients.md); removed on exit",
     )
     parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")
@@ -663,6 +895,21 @@ def _run_env(args: argparse.Namespace) -> int:
                  description=f"{args.env} seed {args.seed} {json.dumps(args.env_kwargs or {})}")
 
 
+def _other_profile_note(profile: str):
+    """An `other_profile_hook` that says once per name on stderr why a client got ERR 64."""
+    noted = set()
+
+    def note(name: str, profiles) -> None:
+        if name not in noted:
+            noted.add(name)
+            wanted = " or ".join(profiles)
+            print(f"bh8 serve: the client asked for {name}, a parameter of firmware {wanted}; this hand runs "
+                  f"firmware {profile} and answered ERR 64 (start bh8 serve --firmware {profiles[-1]})",
+                  file=sys.stderr, flush=True)
+
+    return note
+
+
 def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = None, store=None,
           close=shutdown_firmware, description: str | None = None) -> int:
     """Serve `firmware` on a new pty until SIGINT, SIGTERM or SIGHUP: print the device path as the
@@ -677,6 +924,7 @@ def serve(firmware, realtime: bool = False, link: str | os.PathLike | None = Non
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 1
 
+    firmware.other_profile_hook = _other_profile_note(firmware.profile)
     try:
         with handling_signals((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), server.stop_from_signal_handler):
             print(server.device, flush=True)

@@ -226,7 +226,7 @@ def test_profile_44_layout_and_lft_byte(tmp_path):
     values = None
     for _ in range(50):
         values = layout.feedback_by_motor(layout.decode_feedback(fw.transact(block)))
-    assert values[1]["LFAP"] > 200  # half duty closes the finger
+    assert values[1]["LFAP"] > 200  # a datum of 16000 counts ahead closes the finger (SPEC.md §7)
     assert values[1]["LFAIN"] == 0
     assert 20 <= values["LFT"] <= 80  # whole degrees C
     fw.transact(b"\x03")
@@ -235,3 +235,37 @@ def test_profile_44_layout_and_lft_byte(tmp_path):
     fw43 = Firmware(store_dir=tmp_path / "43", seed=0)
     assert fw43.transact(b"FGET LCT\r") == b"FGET LCT\n\rERR 64\n\r=> "
     fw43.shutdown()
+
+
+def _lct_positions(fw: Firmware, motors: str, data: list[int], cycles: int) -> list[int]:
+    """LFAP of the first LOOP motor after each of `cycles` C blocks carrying the LCT `data`."""
+    layout = fw.loop_layout
+    block = layout.encode_control(data)
+    first = layout.motors[0]
+    return [layout.feedback_by_motor(layout.decode_feedback(fw.transact(block)))[first]["LFAP"] for _ in range(cycles)]
+
+
+def test_lct_is_a_position_datum_added_to_the_present_position(tmp_path):
+    """SPEC.md §7 (LCT on a BH8-262, from Barrett's API 4.4.3 documentation of RTSetTorque: "the
+    desired motor torque will be added to the present motor encoder position and be submitted as
+    the commanded position"): with the datum a client sends, ±300, the spread crosses most of its
+    3150-count range within 20 cycles and comes back (a direct motor command U = LCT/256 moved it
+    less than 100 counts in 50 cycles); a datum ten times smaller moves it far less, the sign picks
+    the direction, and 0 commands the position it is at."""
+    fw = Firmware(store_dir=tmp_path, profile="4.4", seed=0)
+    fw.transact(b"HI\r")
+    fw.transact(b"SM 600\r")
+    fw.transact(b"SFSET LCT 1 LFV 0 LFS 0 LFAP 1 LFDP 0\r")
+    fw.transact(b"SLOOP\r")
+    assert fw.loop_layout.control_fields == ((4, "LCT"),)
+    start = _lct_positions(fw, "S", [0], 3)
+    assert max(start) - min(start) < 10
+    snap = fw.snapshot()
+    small = _lct_positions(fw, "S", [30], 20)[-1] - start[-1]
+    fw.restore(snap)
+    large = _lct_positions(fw, "S", [300], 20)[-1] - start[-1]
+    assert large > 1500 and 0 < small < large / 3, (small, large)
+    back = _lct_positions(fw, "S", [-300], 30)
+    assert back[-1] < back[0] - 1500
+    fw.transact(b"\x03")
+    fw.shutdown()

@@ -169,10 +169,13 @@ def test_every_command_once_after_hi(link):
 
 
 def test_listings(link):
-    """§5.2.2-§5.2.5: FLIST standard only with descriptions, FLISTA all, FLISTV values per motor."""
+    """§5.2.2-§5.2.5: FLIST standard only with descriptions, FLISTA all, FLISTV values per motor;
+    SPEC.md §3.1: BS first, BD and BP before OD, BDAT only in FLISTA."""
     flist = link.lines("FLIST")
     names = [line.split()[0] for line in flist]
-    assert names[:3] == ["DP", "DS", "HSG"] and "ACCEL" not in names
+    assert names[:4] == ["BS", "DP", "DS", "HSG"] and "ACCEL" not in names and "BDAT" not in names
+    assert names[names.index("MSG") + 1:names.index("MSG") + 4] == ["BD", "BP", "OD"]
+    assert "BDAT" in [line.split()[0] for line in link.lines("FLISTA")]
     assert any(line.startswith("DP") and "Default Position" in line for line in flist)
     assert "TSTOP" in [line.split()[0] for line in link.lines("FLISTA")]
     flistv = link.lines("3FLISTV")

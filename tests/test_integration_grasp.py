@@ -2,7 +2,8 @@
 TorqueSwitch breakaway with GC, locked fingers that do not drift, per-instance processing time.
 
 Sources: manual §9.3.1 (TorqueSwitch, worm drives), App. B FAQ A1 (motor current removed, the
-grasp stays), §5.2.1 (C, TC, HI, GO), §5.5 (termination, HOLD); SPEC.md §1, §4, §6, §8.
+grasp stays), §5.2.1 (C, TC, HI, GO), §5.5 (termination, HOLD); SPEC.md §1, §3.1 (breakaway
+parameters), §4, §6, §8.
 """
 from __future__ import annotations
 
@@ -216,3 +217,44 @@ def test_processing_time_is_a_per_instance_setting(tmp_path):
     assert times[1] - times[0] == pytest.approx(2e-3, abs=1e-9)
     with pytest.raises(ValueError, match="-1"):
         Firmware(store_dir=tmp_path / "bad", processing_time=-1.0)
+
+
+def fget(fw: Firmware, line: str) -> list[list[int]]:
+    reply = command(fw, line).decode()
+    return [[int(v) for v in row.split()] for row in reply.split("\n\r")[1:-1]]
+
+
+def test_bd_and_bp_follow_the_plant_and_o_to_hi_clear_them(bars_fw):
+    """SPEC.md §3.1: BD and BP come from the plant's breakaway record (BP in the HCTL frame, the
+    plant's breakaway counts since HI's origin); O, TO and HI clear them, an IO or M does not;
+    a 4.4 hand's LFBP reports the same BP."""
+    fw = bars_fw
+    plant = fw.plant
+    command(fw, "GC")
+    detected, breakaway = fget(fw, "GFGET BD BP")
+    assert detected == [1, 1, 1]
+    for finger in (1, 2, 3):
+        assert not plant.clutch_engaged(finger)
+        assert abs(breakaway[finger - 1] - plant.breakaway_position(finger)) < 200  # HI put the origin near the stop
+    command(fw, "GIO 500")
+    assert fget(fw, "GFGET BD BP") == [[1, 1, 1], breakaway]
+    command(fw, "1O")
+    assert fget(fw, "GFGET BD") == [[0, 1, 1]]
+    command(fw, "2TO")
+    assert fget(fw, "GFGET BD BP") == [[0, 0, 1], [0, 0, breakaway[2]]]
+    command(fw, "3HI")
+    assert fget(fw, "GFGET BD BP") == [[0, 0, 0], [0, 0, 0]]
+
+
+def test_bs_stops_a_finger_at_its_breakaway(bars_fw):
+    """SPEC.md §3.1 (Barrett's API documentation: the breakaway stop flag "is used to stop a finger
+    motor as soon as breakaway is detected"): with BS 1 on F3 only, a GC stops F3 where it broke
+    away (HOLD 0: it stays there) while F1 and F2 close on with their outer links."""
+    fw = bars_fw
+    command(fw, "3FSET BS 1")
+    command(fw, "GC")
+    detected, breakaway, position = fget(fw, "GFGET BD BP P")
+    assert detected == [1, 1, 1]
+    assert abs(position[2] - breakaway[2]) < 150
+    assert position[0] > breakaway[0] + 2000 and position[1] > breakaway[1] + 2000
+    assert fw.plant.breakaway_position(3) / 125.0 == pytest.approx(np.degrees(fw.plant.joint_angles()[6]), abs=2.0)

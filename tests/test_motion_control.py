@@ -125,16 +125,11 @@ def test_loop_gain_zero_gives_no_torque():
     assert fraction == 0.0 and ch.mode == mc.LOOP
 
 
-def test_off_and_torque_modes():
-    """OFF is unpowered (NaN torque, Contract 1 set_drives); TORQUE drives U directly (4.4 LCT)."""
+def test_off_mode_is_unpowered():
+    """OFF is unpowered (NaN torque, Contract 1 set_drives)."""
     ch = mc.MotorChannel()
     velocity, fraction = ch.drive(0.0, 0.0, 0.0, DT)
     assert math.isnan(fraction)
-    ch.torque(-63.5)
-    velocity, fraction = ch.drive(0.0, 0.0, 0.0, DT)
-    assert velocity < 0 and fraction == pytest.approx(0.5)
-    ch.torque(1000)
-    assert ch.drive(0.0, 0.0, 0.0, DT)[1] == 1.0
 
 
 def test_position_move_tracks_a_first_order_motor_to_the_target():

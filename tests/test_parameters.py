@@ -1,6 +1,7 @@
 """The parameter table against the manual's values, written out here independently of parameters.py.
 
-Sources: manual §5.3.1-§5.3.4 (motor), §5.4.1-§5.4.3 (global), §6.3 Table 4; SPEC.md §3, §7.
+Sources: manual §5.3.1-§5.3.4 (motor), §5.4.1-§5.4.3 (global), §6.3 Table 4; SPEC.md §3, §3.1
+(breakaway parameters, from a later manual edition and Barrett's API documentation), §7.
 """
 import pytest
 
@@ -8,6 +9,7 @@ from bh8_gym import parameters as P
 
 # name: (min, max, finger default, spread default, read-only, advanced) — copied from the manual.
 MANUAL_MOTOR = {
+    "BS": (0, 1, 0, 0, False, False),  # SPEC.md §3.1: a flag (API docs); default 0 (§9.3.1: the outer link closes on)
     "DP": (0, 65535, 8500, 1575, False, False),  # §5.3.1
     "DS": (0, 65535, 1700, 315, False, False),
     "HSG": (0, 256, 256, 256, False, False),
@@ -15,6 +17,8 @@ MANUAL_MOTOR = {
     "MOV": (16, 4080, 100, 60, False, False),
     "MCV": (16, 4080, 100, 60, False, False),
     "MSG": (0, 256, 256, 256, False, False),
+    "BD": (0, 1, None, None, True, False),  # SPEC.md §3.1 (manual D3000 AF.00 §5.3.2)
+    "BP": (0, 20000, None, None, True, False),  # SPEC.md §3.1: "0 or 20000"
     "OD": (0, 4_294_967_295, None, None, True, False),  # §5.3.2 "0 to 4 billion"
     "P": (None, None, None, None, True, False),
     "S": (None, None, None, None, True, False),
@@ -29,6 +33,7 @@ MANUAL_MOTOR = {
     "LFDP": (0, 1, 1, 1, False, False),
     "LFDPC": (0, 255, 1, 1, False, False),
     "ACCEL": (0, 65535, 4, 2, False, True),  # §5.3.4
+    "BDAT": (0, 65535, 100, 100, False, True),  # SPEC.md §3.1: range and default our choice
     "CT": (0, 65535, 17000, 3150, False, True),
     "EN": (0, 1, 1, 1, False, True),
     "FDZ": (0, 255, 0, 0, False, True),
@@ -122,9 +127,13 @@ def test_list_membership():
 
 
 def test_listing_order_follows_the_manual():
-    """§5.3.1: FLIST prints in the manual's order, movement parameters first."""
+    """§5.3.1: FLIST prints in the manual's order, movement parameters first; SPEC.md §3.1: BS
+    heads the movement parameters, BD and BP the status ones, BDAT follows ACCEL."""
     names = [p.name for p in P.listed(P.motor_parameters(), advanced=False)]
-    assert names[:7] == ["DP", "DS", "HSG", "LSG", "MOV", "MCV", "MSG"]
+    assert names[:8] == ["BS", "DP", "DS", "HSG", "LSG", "MOV", "MCV", "MSG"]
+    assert names[8:12] == ["BD", "BP", "OD", "P"]
+    advanced = [p.name for p in P.listed(P.motor_parameters(), advanced=True) if p.advanced]
+    assert advanced[:3] == ["ACCEL", "BDAT", "CT"]
 
 
 def test_coefficient_zero_scales_as_one():

@@ -9,6 +9,7 @@ no CPU), SPEC.md §2 (framing, ^C → ERR 16384), §5 (RealTime blocks are count
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import stat
@@ -49,9 +50,15 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _check_link_serves_then_goes(link: PtyLink, link_path: Path) -> None:
-    """--link points at the server's device, which answers; a clean exit removes the link."""
+    """--link points at a pty of the server (each open of the link a fresh one, Contract 3), which
+    answers as the device does; a clean exit removes the link."""
     try:
-        assert os.readlink(link_path) == link.device
+        for _ in range(2):
+            target = os.readlink(link_path)
+            assert target.startswith("/dev/pts/") and stat.S_ISCHR(os.stat(target).st_mode)
+            with serial.Serial(str(link_path), 9600, timeout=0.05) as port:
+                port.write(b"\r")
+                assert _read_to_prompt(port) == b"\n\r=> "
         link.write(b"\r")
         link.read_until(PROMPT, timeout=10)
     finally:
@@ -107,16 +114,19 @@ def test_link_symlink_created_and_removed(tmp_path):
 
 
 def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
-    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty number
-    to the next server, so the stale link then points at the new server's own device. A restart
-    with the same --link must take it over, not refuse it as 'already exists'."""
+    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty numbers
+    to the next server, so the stale link then points at one of the new server's own ptys. A
+    restart with the same --link must take it over, not refuse it as 'already exists'. The killed
+    server's own device symlink (and its private directory) is removed by the next server."""
     link_path = tmp_path / "ttyUSB0"
     first = _serve(tmp_path / "store1", "--link", str(link_path))
     first.port.close()
     first.process.kill()
     first.process.wait(timeout=20)
-    assert os.path.islink(link_path)
-    _check_link_serves_then_goes(_serve(tmp_path / "store2", "--link", str(link_path)), link_path)
+    assert os.path.islink(link_path) and os.path.islink(first.device)
+    second = _serve(tmp_path / "store2", "--link", str(link_path))
+    assert not os.path.lexists(os.path.dirname(first.device))
+    _check_link_serves_then_goes(second, link_path)
 
 
 def test_close_and_reopen_keeps_state(tmp_path):
@@ -656,3 +666,265 @@ def test_pty_carries_any_byte_stream_like_in_process(pty_and_sim, data):
     link.write(data)
     assert link.read_exact(len(expected), timeout=10) == expected
     assert link.port.read(1) == b""  # nothing more within the port's 50 ms timeout
+
+
+# -- what a closed port receives, and the breakaway parameters on the wire ---------------------
+
+
+def _raw_open(device: str, baud: int | None = None) -> int:
+    """Open the device as a C client does (open(2), cfmakeraw, the baud rate), without the input
+    flush pyserial's open() adds, so bytes waiting in the pty would be read."""
+    import termios
+    import tty
+
+    fd = os.open(device, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(fd, termios.TCSANOW)  # not TCSAFLUSH (the default), which would discard input itself
+    if baud is not None:
+        attrs = termios.tcgetattr(fd)
+        attrs[4] = attrs[5] = getattr(termios, f"B{baud}")
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    return fd
+
+
+def _raw_read(fd: int, seconds: float) -> bytes:
+    """Everything that arrives on `fd` within `seconds`."""
+    deadline = time.monotonic() + seconds
+    data = bytearray()
+    while (left := deadline - time.monotonic()) > 0:
+        ready, _, _ = select.select([fd], [], [], left)
+        if ready:
+            data += os.read(fd, 4096)
+    return bytes(data)
+
+
+def _raw_read_until(fd: int, terminator: bytes, timeout: float = 10.0) -> bytes:
+    deadline = time.monotonic() + timeout
+    data = bytearray()
+    while not data.endswith(terminator):
+        left = deadline - time.monotonic()
+        ready, _, _ = select.select([fd], [], [], max(left, 0.0))
+        if not ready:
+            raise TimeoutError(f"no {terminator!r} within {timeout}s; got {bytes(data)!r}")
+        data += os.read(fd, 1)
+    return bytes(data)
+
+
+def test_a_fresh_open_starts_empty_whatever_the_last_client_left_unread(tmp_path):
+    """A real port drops what arrives while it is closed and a new open starts empty (issue 18):
+    a client that sends ^C (SPEC.md §2: idle ^C gets a prompt) or a command and closes without
+    reading the reply must not leave that reply for the next client, whether it closed before the
+    hand answered or after. The next client then gets exactly its own replies. (A reply that is
+    still on its way when the next client opens, the end of a long motion, reaches that client,
+    as it would through a port.)"""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        for sent, wait in ((b"\x03", 0.0), (b"\x03", 0.3), (b"1FGET P\r", 0.3), (b"1FGET P\r", 0.0)):
+            first = _raw_open(link.device)
+            os.write(first, sent)
+            time.sleep(wait)  # 0.3 s: the reply has surely arrived in the pty, unread
+            os.close(first)
+            time.sleep(0.3)  # the next run of a program
+            second = _raw_open(link.device)
+            try:
+                assert _raw_read(second, 0.5) == b"", f"stale bytes after {sent!r}"
+                os.write(second, b"\r")
+                assert _raw_read_until(second, PROMPT, timeout=60) == b"\n\r=> "
+                os.write(second, b"2FGET DP\r")
+                assert _raw_read_until(second, PROMPT) == b"2FGET DP\n\r8500\n\r=> "
+            finally:
+                os.close(second)
+    finally:
+        link.close()
+
+
+def test_reopening_the_port_discards_the_reply_left_unread_as_a_baud_change_does(tmp_path):
+    """§5.4.1 BAUD: after PSET BAUD a client switches its own port to the new rate; Barrett's C++
+    API does so by reading only the echo, waiting, closing and reopening the port at once to
+    discard the buffers, then sending a CR and expecting a prompt (docs/clients.md). The reply to
+    PSET BAUD must not survive the reopen, or every later reply is read one prompt late. The
+    reopen follows the close within microseconds, faster than a server could flush a pty, so every
+    open of the device (and of --link) is a fresh pty (Contract 3)."""
+    linked = tmp_path / "ttyUSB0"
+    link = _serve(tmp_path / "store", "--link", str(linked))
+    link.port.close()
+    try:
+        for rate, device in ((38400, linked), (9600, link.device), (19200, linked), (38400, link.device), (9600, linked)):
+            fd = _raw_open(str(device))
+            line = f"PSET BAUD {rate // 100}".encode()
+            os.write(fd, line + b"\r")
+            assert _raw_read_until(fd, line) == line  # the echo only; the reply is left unread
+            time.sleep(0.3)
+            os.close(fd)
+            fd = _raw_open(str(device), baud=rate)
+            try:
+                os.write(fd, b"\r")
+                assert _raw_read_until(fd, PROMPT) == b"\n\r=> "
+                os.write(fd, b"PGET BAUD\r")
+                assert _raw_read_until(fd, PROMPT) == f"PGET BAUD\n\r{rate // 100}\n\r=> ".encode()
+            finally:
+                os.close(fd)
+    finally:
+        link.close()
+
+
+def test_each_open_of_the_link_is_a_fresh_pty_on_the_same_hand(tmp_path):
+    """Contract 3 / --link: the link moves to a new pty whenever a client opens it, so nothing the
+    last client left unread reaches the next one however fast it reopens; the hand is the same
+    (its unsaved state carries over), and a pty whose client closed is released."""
+    device = tmp_path / "ttyUSB0"
+    link = _serve(tmp_path / "store", "--link", str(device))
+    link.port.close()
+    try:
+        for value in (4321, 1234, 2222, 3333):
+            opened = os.readlink(device)
+            fd = _raw_open(str(device))
+            try:
+                os.write(fd, f"1FSET DP {value}\r".encode())
+                assert _raw_read_until(fd, PROMPT) == f"1FSET DP {value}\n\r=> ".encode()
+                assert os.readlink(device) != opened  # moved on while this client holds `opened`
+                os.write(fd, b"\x03")  # a ^C at disconnect whose prompt this client never reads
+                time.sleep(0.2)  # the prompt is in the pty, unread (one still in flight could reach a reopen, as on a port)
+            finally:
+                os.close(fd)
+            fd = _raw_open(str(device))
+            try:
+                os.write(fd, b"1FGET DP\r")
+                assert _raw_read_until(fd, PROMPT) == f"1FGET DP\n\r{value}\n\r=> ".encode()
+            finally:
+                os.close(fd)
+        time.sleep(0.3)
+        held = [fd for fd in os.listdir(f"/proc/{link.process.pid}/fd")
+                if os.readlink(f"/proc/{link.process.pid}/fd/{fd}") in ("/dev/ptmx", "/dev/pts/ptmx")]
+        assert len(held) <= 2  # the fresh pty behind the links and at most one closing
+        link.port = serial.Serial(link.device, 9600, timeout=0.05)
+        assert link.lines("1FGET DP") == ["3333"]
+    finally:
+        link.close()
+
+
+def test_two_clients_open_at_once_both_keep_their_output(tmp_path):
+    """Output is dropped only while no client has the device open: a second opener (a terminal
+    watching, a probe) that closes again does not take the first client's replies away."""
+    link = _serve(tmp_path / "store")
+    try:
+        probe = _raw_open(link.device)
+        os.close(probe)
+        assert link.lines("1FGET DP") == ["8500"]
+        link.write(b"1FGET DS\r")
+        time.sleep(0.3)
+        probe = _raw_open(link.device)
+        os.close(probe)
+        assert link.read_until(PROMPT, timeout=10) == b"1FGET DS\n\r1700\n\r=> "
+    finally:
+        link.close()
+
+
+# A box between the fingers, heavy enough not to move, that the inner links meet near 37°: a GC
+# at the default MCV breaks all three clutches away there (§9.3.1 TorqueSwitch).
+INNER_LINK_OBSTACLE = "box:0.06x0.10x0.06;mass=10"
+
+
+def _error_code(reply: bytes) -> int | None:
+    """The n of an "ERR n" reply (SPEC.md §2: "\n\rERR n\n\r=> "), else None."""
+    if reply.startswith(b"\n\rERR ") and reply.endswith(b"\n\r=> "):
+        return int(reply[6:-5])
+    return None
+
+
+def _fingers(link: PtyLink, line: str) -> list[list[int]]:
+    return [[int(v) for v in row.split()] for row in link.lines(line)]
+
+
+def test_breakaway_parameters_across_a_breakaway_and_a_reengagement(tmp_path):
+    """SPEC.md §3.1 (BD/BP: manual D3000 AF.00 §5.3.2; BS/BDAT: Barrett's API documentation),
+    through the pty: before any breakaway BD and BP read 0; a GC whose inner links meet the box
+    breaks away, BD reads 1 and BP the position where the inner link stopped, below P because the
+    outer links closed on (§9.3.1); GO re-engages and clears BD and BP; with BS 1 the next GC stops
+    each finger at its breakaway (P = BP), which also shows the clutches engaged again. BD and BP
+    are read-only (ERR 256), BS is a flag (ERR 128 for 2), BDAT a stored advanced parameter; the
+    spread has no breakaway."""
+    link = _serve(tmp_path / "store", "--object", INNER_LINK_OBSTACLE)
+    try:
+        _initialise(link)
+        assert _fingers(link, "GFGET BD BP BS BDAT") == [[0, 0, 0], [0, 0, 0], [0, 0, 0], [100, 100, 100]]
+        assert link.lines("GC", timeout=30) == []
+        detected, breakaway, position = _fingers(link, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        for bp, p in zip(breakaway, position):
+            assert 2000 < bp < p - 1000, (breakaway, position)  # outer links kept closing after it
+        assert "BD 1 1 1" in link.lines("GFLISTV") and f"BP {' '.join(map(str, breakaway))}" in link.lines("GFLISTV")
+        assert _fingers(link, "SFGET BD BP") == [[0], [0]]
+        assert _error_code(link.command("1FSET BD 0")) == 256
+        assert _error_code(link.command("1FSET BP 5")) == 256
+        assert _error_code(link.command("GFSET BS 2")) == 128
+
+        assert link.lines("GO", timeout=30) == []
+        assert _fingers(link, "GFGET BD BP") == [[0, 0, 0], [0, 0, 0]]
+
+        assert link.lines("GFSET BS 1 BDAT 250") == []
+        assert link.lines("GC", timeout=30) == []
+        detected, stopped_at, position = _fingers(link, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        for bp, p, before in zip(stopped_at, position, breakaway):
+            assert abs(p - bp) < 150 and abs(bp - before) < 500, (stopped_at, position, breakaway)
+        assert _fingers(link, "GFGET BS BDAT") == [[1, 1, 1], [250, 250, 250]]
+    finally:
+        link.close()
+
+
+def test_a_4_4_parameter_on_a_4_3_hand_is_err_64_and_the_server_says_why(tmp_path):
+    """SPEC.md §7: LCT is a firmware 4.4 parameter; a 4.3 hand answers ERR 64 (unknown parameter),
+    as a real 4.3 hand does, and `bh8 serve` tells its user on stderr to start it with
+    --firmware 4.4 (once per name)."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert _error_code(link.command("1FSET LCT 1")) == 64
+        assert _error_code(link.command("1FGET LCT LFBP")) == 64
+        assert _error_code(link.command("1FGET LCT")) == 64
+        assert _error_code(link.command("1FGET NOPE")) == 64
+    finally:
+        link.close()
+    notes = [line for line in link.process.stderr.read().splitlines() if "a parameter of firmware" in line]
+    assert len(notes) == 2 and "LCT" in notes[0] and "LFBP" in notes[1]
+    assert all("--firmware 4.4" in note for note in notes)
+
+
+def test_a_client_killed_mid_block_leaves_the_hand_waiting_and_repeated_ctrl_c_recovers(tmp_path):
+    """SPEC.md §2 / §6 (blocks are counted bytes; 0x03 can be data): a client killed after the
+    header and two of a block's six data bytes leaves the hand waiting, as a real hand does, so
+    the next client's first ^C is taken as data. The documented recovery (docs/clients.md): ^C,
+    read, repeat until the reply ends with the prompt; at most the block's size plus one. Our own
+    client does it when it connects."""
+    from bh8_gym.client import BarrettHand
+
+    link = _serve(tmp_path / "store")
+    try:
+        _initialise(link)
+        assert link.lines("GFSET LCV 1 LCPG 1 LFV 0 LFS 0 LFAP 0 LFDP 0") == []
+        link.write(b"GLOOP\r")
+        assert link.read_until(b"*", timeout=10) == b"GLOOP*"
+        link.write(b"C\x05\x30")  # then killed: four data bytes never sent
+        time.sleep(0.3)
+        link.port.close()
+        fd = _raw_open(link.device)
+        try:
+            replies = []
+            for _ in range(7):
+                os.write(fd, b"\x03")
+                replies.append(_raw_read(fd, 0.5))
+                if replies[-1].endswith(PROMPT):
+                    break
+            assert replies[0] == b"" and replies[-1] == b"\n\r=> ", replies  # the first ^C was data
+            assert len(replies) <= 7
+            os.write(fd, b"2FGET DP\r")
+            assert _raw_read_until(fd, PROMPT) == b"2FGET DP\n\r8500\n\r=> "
+            os.write(fd, b"GLOOP\r")
+            assert _raw_read_until(fd, b"*") == b"GLOOP*"
+            os.write(fd, b"C\x05")  # killed again
+        finally:
+            os.close(fd)
+        with BarrettHand(link.device, timeout=2.0) as hand:
+            assert hand.get("DP", "2") == {"DP": [8500]}
+    finally:
+        link.close()
