@@ -49,6 +49,7 @@ from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import VALID_BAUD_RATES
 from bh8_gym.envs.wrappers import unit_to_bytes
+from bh8_gym.safety import NO_VELOCITY_CLAMP, SafetyEnvelope
 from bh8_gym.status import BH8Error
 
 EXIT_ACTIONS = ("GT", "T", "none")
@@ -57,14 +58,9 @@ EXIT_ACTIONS = ("GT", "T", "none")
 # (`BH8LoopEnv.next_elapsed`; an unpaced simulator: bit-identical to the env's without latency
 # randomisation, e.g. `bh8 serve --env ID --seed N --env-kwargs '{"randomize": false}'`).
 CLOCKS = ("wall", "cycles")
-# Default safety limits. Strain: 8-bit gauge, no-load 100-140 (SPEC.md §1); 230 leaves headroom
-# below saturation (255) for a firm grasp. Temperature: the hand runs at 40-60 °C (§2); stop at 65.
-DEFAULT_MAX_STRAIN = 230
-DEFAULT_MAX_TEMPERATURE_C = 65.0
-# LCV byte limit (|LCV| ≤ this); NO_VELOCITY_CLAMP (127) is the full signed-byte range -128..127,
-# i.e. no clamp, so deploy sends exactly the bytes the env's ContinuousActions mapping gives.
-DEFAULT_MAX_VELOCITY_BYTE = 100
-NO_VELOCITY_CLAMP = 127
+# The default limits are the policy's env's safety envelope (bh8_gym.safety, the env trains inside
+# it): these are the envelope's defaults, for the help text.
+DEFAULT_ENVELOPE = SafetyEnvelope()
 
 
 class DeployError(RuntimeError):
@@ -95,20 +91,29 @@ def check_deployable(policy, env) -> None:
 class Deployment:
     """A policy driving a `BarrettHand` in LOOP, cycle by cycle, with limits and a block log."""
 
-    def __init__(self, hand, policy, env, log_file, max_velocity: int = DEFAULT_MAX_VELOCITY_BYTE,
-                 max_strain: int = DEFAULT_MAX_STRAIN, max_temperature: float = DEFAULT_MAX_TEMPERATURE_C,
+    def __init__(self, hand, policy, env, log_file, max_velocity: int | None = None,
+                 max_strain: int | None = None, max_temperature: float | None = None,
                  on_exit: str = "GT", clock: str = "wall"):
+        """Limits None: the env's safety envelope (`env.unwrapped.safety`), which it trained in."""
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
         if on_exit not in EXIT_ACTIONS:
             raise ValueError(f"on_exit must be one of {EXIT_ACTIONS}, got {on_exit!r}")
-        if not 0 <= max_velocity <= 127:
-            raise ValueError(f"max_velocity must be an LCV byte magnitude 0..127, got {max_velocity!r}")
         check_deployable(policy, env)
         self.hand, self.policy, self.env = hand, policy, env
         self.base = env.unwrapped
+        trained = self.base.safety
+        try:
+            self.envelope = SafetyEnvelope(
+                max_strain=trained.max_strain if max_strain is None else max_strain,
+                max_velocity=trained.max_velocity if max_velocity is None else max_velocity,
+                max_temperature=trained.max_temperature if max_temperature is None else max_temperature)
+        except ValueError as error:
+            raise ValueError(str(error).replace("SafetyEnvelope.", "")) from None
+        max_velocity = self.envelope.max_velocity
+        self.max_strain, self.max_temperature = self.envelope.max_strain, self.envelope.max_temperature
         self.log_file = log_file
-        self.max_strain, self.max_temperature, self.on_exit = max_strain, max_temperature, on_exit
+        self.on_exit = on_exit
         space = self.base.action_space
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
@@ -149,8 +154,9 @@ class Deployment:
         # cycle only when the env's LOOP carries the temperature.
         temperature = hand.temperature()
         self._log({"event": "temperature", "celsius": temperature, "t": time.monotonic()})
-        if temperature > self.max_temperature:
-            raise SafetyStop(f"temperature {temperature:.1f} C above the limit {self.max_temperature} C before LOOP")
+        stop = self.envelope.temperature_violation(temperature, " before LOOP")
+        if stop is not None:
+            raise SafetyStop(stop)
         loop_line = self.base.loop_command
         self.layout = hand.start_loop(loop_line[: -len("LOOP")] or "GS")
         self._log({"event": "loop", "line": loop_line, "layout": repr(self.layout), "t": time.monotonic()})
@@ -168,11 +174,10 @@ class Deployment:
         return feedback
 
     def _check_limits(self, feedback) -> None:
-        for motor, data in feedback.motors.items():
-            if motor != 4 and data.strain is not None and data.strain > self.max_strain:
-                raise SafetyStop(f"motor {motor} strain {data.strain} above the limit {self.max_strain}")
-        if feedback.temperature is not None and feedback.temperature > self.max_temperature:
-            raise SafetyStop(f"temperature {feedback.temperature:.1f} C above the limit {self.max_temperature} C")
+        stop = (self.envelope.strain_violation((motor, data.strain) for motor, data in feedback.motors.items())
+                or self.envelope.temperature_violation(feedback.temperature))
+        if stop is not None:
+            raise SafetyStop(stop)
 
     def run(self, cycles: int) -> str:
         """Run up to `cycles` policy cycles; returns why it stopped, which the log's stop record
@@ -330,7 +335,8 @@ def _finite_float(text: str) -> float:
 
 EXIT_STATUS_HELP = """\
 the same blocks, byte for byte, as `bh8 eval` of the policy (on `bh8 serve --env ID --seed N`):
-  --max-velocity 127 --max-strain 255 --on-exit none --clock cycles (no clamp, strain stop or exit action)
+  --on-exit none --clock cycles (the default limits are the env's own safety envelope: deploy
+  clamps nothing the env allows and stops where the env's episode ends with a safety stop)
 
 exit status:
   0    the cycles ran; the hand was left safe
@@ -357,13 +363,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "(default: one env episode at the nominal latency)")
     parser.add_argument("--log", type=Path, default=Path("deploy_log.jsonl"),
                         help="JSONL block log (default %(default)s)")
+    envelope = "the safety envelope the policy's env trained in"
     parser.add_argument("--max-velocity", type=integer_argument(0, NO_VELOCITY_CLAMP, "LCV byte magnitude"),
-                        default=DEFAULT_MAX_VELOCITY_BYTE,
-                        help="|LCV| limit in bytes, 0..127; 127: no clamp, -128..127 (default %(default)s)")
-    parser.add_argument("--max-strain", type=integer_argument(0, 255, "8-bit strain gauge"), default=DEFAULT_MAX_STRAIN,
-                        help="stop when a finger's strain exceeds this, 0..255 (default %(default)s)")
-    parser.add_argument("--max-temperature", type=_finite_float, default=DEFAULT_MAX_TEMPERATURE_C,
-                        help="stop when the hand's temperature exceeds this, degrees C (default %(default)s)")
+                        default=None,
+                        help=f"|LCV| limit in bytes, 0..127; 127: no clamp, -128..127 (default: {envelope}, "
+                             f"by default {DEFAULT_ENVELOPE.max_velocity})")
+    parser.add_argument("--max-strain", type=integer_argument(0, 255, "8-bit strain gauge"), default=None,
+                        help=f"stop when a finger's strain exceeds this, 0..255 (default: {envelope}, by default "
+                             f"{DEFAULT_ENVELOPE.max_strain})")
+    parser.add_argument("--max-temperature", type=_finite_float, default=None,
+                        help=f"stop when the hand's temperature exceeds this, degrees C (default: {envelope}, by "
+                             f"default {DEFAULT_ENVELOPE.max_temperature})")
     parser.add_argument("--clock", choices=CLOCKS, default="wall",
                         help="elapsed time in the observation: wall clock (real hand) or the env's clock "
                              "summed per cycle at the nominal latency (unpaced simulator, e.g. bh8 serve --env); "

@@ -67,6 +67,10 @@ SPREAD_KNUCKLE = (-0.0123, kin.A1 + 0.015, 0.015)  # (start, end along x1, top a
 FIXED_KNUCKLE = (0.035, 0.061, 0.009)
 KNUCKLE_BELOW = 0.010  # how far the housing's box reaches below the palm face (into the palm)
 KNUCKLE_HEIGHT = max(SPREAD_KNUCKLE[2], FIXED_KNUCKLE[2])  # how far the hand stands proud of its palm face
+# How far below the palm face a closing finger reaches (its collision shapes along the 3:1 coupling
+# before breakaway: deepest at about 7,250 counts, the outer link's pad then facing the palm axis).
+# A palm-down hand whose palm face is higher than this above a table closes without touching it.
+FINGER_SWEEP_DEPTH = 0.1006
 
 PALM_RGBA = (0.22, 0.23, 0.25, 1.0)
 KNUCKLE_RGBA = (0.12, 0.12, 0.13, 1.0)

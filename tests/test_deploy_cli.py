@@ -96,16 +96,17 @@ def test_an_unwritable_log_is_a_usage_error_before_the_port_is_opened(policy_pat
 
 
 def test_help_shows_the_safety_limits_defaults_and_the_exit_codes(capsys):
-    from bh8_gym.agents.deploy import DEFAULT_MAX_STRAIN, DEFAULT_MAX_TEMPERATURE_C, DEFAULT_MAX_VELOCITY_BYTE
     from bh8_gym.cli import main
+    from bh8_gym.safety import SafetyEnvelope
 
     with pytest.raises(SystemExit) as exited:
         main(["deploy", "--help"])
     assert exited.value.code == 0
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines where it likes
-    for default in (DEFAULT_MAX_VELOCITY_BYTE, DEFAULT_MAX_STRAIN, DEFAULT_MAX_TEMPERATURE_C):
-        assert f"(default {default})" in text
-    assert "--max-velocity 127 --max-strain 255 --on-exit none --clock cycles" in text
+    envelope = SafetyEnvelope()
+    for default in (envelope.max_velocity, envelope.max_strain, envelope.max_temperature):
+        assert f"(default: the safety envelope the policy's env trained in, by default {default})" in text
+    assert "--on-exit none --clock cycles (the default limits are the env's own safety envelope" in text
     exit_status = text.split("exit status:", 1)[1]
     for code in ("0", "1", "2", "3", "130"):
         assert f" {code} " in f" {exit_status}", code

@@ -208,13 +208,13 @@ def test_observation_builder_reproduces_the_env_observation(grasp):
     obs, info = grasp.reset(seed=1)
     values = grasp.layout.decode_feedback(info["feedback_block"])
     assert np.array_equal(grasp.observation_from_feedback(values, np.zeros(8), grasp.elapsed()), obs)
-    action = np.array([50, 200, -20, 10, 127, 255, -128, 0], dtype=np.int16)
+    action = np.array([50, 200, -20, 10, 100, 255, -100, 0], dtype=np.int16)
     obs, _, _, _, info = grasp.step(action)
     values = grasp.layout.decode_feedback(info["feedback_block"])
     built = grasp.observation_from_feedback(values, action, grasp.elapsed())
     assert np.array_equal(built, obs)
     prev = grasp.observation_fields.index("prev_LCV1")
-    assert obs[prev] == pytest.approx(bytes_to_unit(np.array([50.0]), np.array([-128.0]), np.array([127.0]))[0])
+    assert obs[prev] == pytest.approx(0.5)  # LCV 50 of the envelope's ±100
     lfap1 = grasp.observation_fields.index("LFAP1")
     assert obs[lfap1] == pytest.approx(values[1] / 17500)
 
@@ -224,6 +224,7 @@ def test_observation_builder_reproduces_the_env_observation(grasp):
     [
         (np.zeros(7, dtype=np.int16), "shape"),
         (np.array([128, 0, 0, 0, 0, 0, 0, 0]), "out of range"),
+        (np.array([101, 0, 0, 0, 0, 0, 0, 0]), "out of range"),  # the safety envelope's |LCV| <= 100
         (np.array([0, -1, 0, 0, 0, 0, 0, 0]), "out of range"),
         (np.array([0, 256, 0, 0, 0, 0, 0, 0]), "out of range"),
         (np.array([0.5, 0, 0, 0, 0, 0, 0, 0]), "whole numbers"),
@@ -237,7 +238,8 @@ def test_invalid_actions_raise_naming_the_value(grasp, action, message):
 
 
 def test_continuous_actions_map_onto_the_loop_bytes(reach):
-    """[-1, 1] → LCV -128..127 linearly, clipped; NaN raises."""
+    """[-1, 1] → LCV -128..127 linearly, clipped; NaN raises. In an env, +1 is the safety
+    envelope's largest LCV (100, bh8_gym.safety)."""
     low, high = np.array([-128.0, 0.0]), np.array([127.0, 255.0])
     assert unit_to_bytes(np.array([-1.0, -1.0]), low, high).tolist() == [-128, 0]
     assert unit_to_bytes(np.array([1.0, 1.0]), low, high).tolist() == [127, 255]
@@ -249,7 +251,7 @@ def test_continuous_actions_map_onto_the_loop_bytes(reach):
     env = ContinuousActions(reach)
     env.reset(seed=0)
     _, _, _, _, info = env.step(np.ones(4, dtype=np.float32))
-    assert info["control_block"] == b"C" + bytes([127] * 4)
+    assert info["control_block"] == b"C" + bytes([100] * 4)
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
 
@@ -669,3 +671,50 @@ def test_rgb_array_rendering_and_episode_recording(tmp_path):
         assert env.metadata["render_fps"] == round(1 / env.unwrapped.cycle_seconds)
     finally:
         env.close()
+
+
+def test_a_squeeze_past_the_safety_envelope_ends_the_episode_as_deploy_would():
+    """bh8_gym.safety: the env trains inside deploy's envelope. A full squeeze (LCV 100, LCPG 255)
+    on this seed's object drives a finger's strain past 230: that step ends the episode
+    (terminated, no success, the "safety" penalty, info["safety_stop"] naming the reading, which
+    is the message deploy stops a hand with); with the limit raised to 255 the same squeeze runs
+    on. LCV past the envelope is out of the action space."""
+    from bh8_gym.safety import SafetyEnvelope
+
+    squeeze = np.array([100, 255, 100, 255, 100, 255, 0, 255], dtype=np.int16)
+
+    def run(**kwargs):
+        env = gym.make("BH8Grasp-v0", object_set="primitives-train", randomize=False, **kwargs).unwrapped
+        try:
+            env.reset(seed=1)
+            steps = 0
+            while True:
+                _, reward, terminated, truncated, info = env.step(squeeze)
+                steps += 1
+                if terminated or truncated:
+                    return steps, reward, terminated, info
+        finally:
+            env.close()
+
+    steps, reward, terminated, info = run()
+    assert terminated and steps < 300 and not info["is_success"]
+    assert info["safety_stop"].startswith("motor ") and info["safety_stop"].endswith("above the limit 230")
+    assert info["reward_terms"]["safety"] == -5.0 and info["reward_terms"]["success"] == 0.0
+    assert reward == pytest.approx(sum(info["reward_terms"].values()))
+    assert SafetyEnvelope().strain_violation([(2, 231)]) == "motor 2 strain 231 above the limit 230"
+    steps, _, _, info = run(safety={"max_strain": 255})
+    assert steps == 309 and "safety_stop" not in info
+    env = gym.make("BH8Grasp-v0", safety={"max_velocity": 60}).unwrapped
+    try:
+        assert env.action_space.low[0] == -60 and env.action_space.high[0] == 60
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("fields, message", [({"max_strain": 256}, "max_strain"), ({"max_velocity": -1}, "max_velocity"),
+                                             ({"max_velocity": 1.5}, "max_velocity"),
+                                             ({"max_temperature": float("nan")}, "max_temperature"),
+                                             ({"max_speed": 3}, "max_speed")])
+def test_a_bad_safety_envelope_is_a_clear_error(fields, message):
+    with pytest.raises(ValueError, match=message):
+        gym.make("BH8Grasp-v0", safety=fields)

@@ -118,3 +118,31 @@ def test_fingers_at_full_spread_are_side_by_side_with_gaps(loaded):
                 # The knuckle housings are 0.4 mm apart (CAD; their contact is off: NO_CONTACT_PAIRS).
                 gap = 0.0 if part_a == part_b == "knuckle" else 0.002
                 assert all(point[8] > gap for point in close), (a, part_a, b, part_b)
+
+
+def test_finger_sweep_depth_is_how_deep_a_closing_finger_reaches():
+    """FINGER_SWEEP_DEPTH (the grasp scene keeps fingertips off the table with it): the deepest point
+    any finger's collision shapes reach below the palm face along the closing path (3:1 coupling,
+    manual §9.5 Eq. 4-5), measured against a floor with PyBullet's closest-point query, within 0.5 mm."""
+    from bh8_gym.plant import HandPlant, PlantParameters
+
+    plant = HandPlant(params=PlantParameters(table=False))
+    try:
+        hand, cid = plant.hand_id, plant.client
+        wrist, _ = plant.wrist_pose()
+        palm_face = wrist[2] - hand_urdf.PALM_TOP
+        floor_shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=[1, 1, 0.05], physicsClientId=cid)
+        floor = p.createMultiBody(0, floor_shape, -1, [0, 0, palm_face - 0.25], physicsClientId=cid)
+        joints = {p.getJointInfo(hand, j, physicsClientId=cid)[1].decode(): j
+                  for j in range(p.getNumJoints(hand, physicsClientId=cid))}
+        deepest = 0.0
+        for counts in range(0, 17_000, 50):
+            inner, outer = kin.finger_angles(counts)
+            for finger in (1, 2, 3):
+                p.resetJointState(hand, joints[f"f{finger}_inner_joint"], inner, physicsClientId=cid)
+                p.resetJointState(hand, joints[f"f{finger}_outer_joint"], outer, physicsClientId=cid)
+            gap = min(c[8] for c in p.getClosestPoints(hand, floor, 0.5, physicsClientId=cid))
+            deepest = max(deepest, 0.2 - gap)
+        assert deepest == pytest.approx(hand_urdf.FINGER_SWEEP_DEPTH, abs=5e-4)
+    finally:
+        plant.close()

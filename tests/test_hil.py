@@ -22,8 +22,9 @@ import pytest
 
 ENV_ID = "BH8Grasp-v0"
 SEED = 5
-# Deploy's safety limits off, so it sends exactly what the in-process evaluation sends.
-UNLIMITED = ["--max-velocity", "127", "--max-strain", "255", "--on-exit", "none"]
+# Deploy's limits are its defaults, the env's safety envelope (bh8_gym.safety): it clamps nothing
+# the env's action space allows and stops where the env's episode ends with a safety stop.
+ON_EXIT = ["--on-exit", "none"]
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
 
@@ -50,8 +51,9 @@ def policy_path(tmp_path_factory):
                                                     "privileged": False})
 
 
-def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[list[bytes], list[bytes]]:
-    """One episode at SEED: (control blocks, feedback blocks), the "A" block first. With
+def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[list[bytes], list[bytes], bool]:
+    """One episode at SEED: (control blocks, feedback blocks, whether it ended with a safety stop),
+    the "A" block first. With
     `host_clock`, observations are rebuilt from each feedback block on the nominal clock, as a host
     does; otherwise they are the env's own."""
     from bh8_gym.agents.env_factory import make_env
@@ -77,16 +79,17 @@ def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[li
                 elapsed = base.next_elapsed(elapsed, len(info["control_block"]), base.nominal_processing_time)
                 observation = base.observation_from_feedback(base.layout.decode_feedback(feedbacks[-1]), previous,
                                                              elapsed)
-        if not host_clock:
+        stopped = "safety_stop" in info
+        if not host_clock and not stopped:
             assert len(controls) - 1 == base.nominal_episode_steps()  # deploy's default cycle count
-        return controls, feedbacks
+        return controls, feedbacks, stopped
     finally:
         env.close()
 
 
-def _deploy_through_served_env(policy_path, env_kwargs: dict, log_path, extra: list[str]):
-    """`bh8 serve --env ... --seed SEED` as a subprocess, `bh8 deploy ... *extra` against its pty:
-    (control blocks, feedback blocks) from deploy's log."""
+def _deploy_through_served_env(policy_path, env_kwargs: dict, log_path, extra: list[str], exit_code: int = 0):
+    """`bh8 serve --env ... --seed SEED` as a subprocess, `bh8 deploy ... *extra` against its pty,
+    expected to exit with `exit_code`: (control blocks, feedback blocks) from deploy's log."""
     from bh8_gym.cli import main
 
     server = subprocess.Popen(
@@ -98,8 +101,8 @@ def _deploy_through_served_env(policy_path, env_kwargs: dict, log_path, extra: l
         device = server.stdout.readline().strip()
         assert device.startswith("/dev/"), server.stderr.read()
         code = main(["deploy", "--port", device, "--policy", str(policy_path), "--clock", "cycles",
-                     "--log", str(log_path), *UNLIMITED, *extra])
-        assert code == 0
+                     "--log", str(log_path), *ON_EXIT, *extra])
+        assert code == exit_code
     finally:
         server.terminate()
         _, errors = server.communicate(timeout=30)
@@ -113,16 +116,19 @@ def _deploy_through_served_env(policy_path, env_kwargs: dict, log_path, extra: l
 def test_deploy_on_served_env_is_byte_identical_to_in_process(policy_path, tmp_path, randomize):
     """Contract 2 + SPEC.md §6: every control and feedback block of `bh8 deploy --clock cycles`
     against `bh8 serve --env BH8Grasp-v0 --seed 5` equals the in-process episode's, cycle by cycle
-    (the "A" block and every policy cycle; deploy's extra stop block after the episode aside)."""
+    (the "A" block and every policy cycle; deploy's extra stop block after the episode aside).
+    This policy squeezes past the safety envelope's strain limit: deploy, with its default limits,
+    stops the hand (exit 3) after the very block at which the env's episode ends with its safety stop."""
     from bh8_gym.agents.policy_file import load_policy
 
     env_kwargs = {"randomize": randomize}
-    controls, feedbacks = _evaluate_in_process(load_policy(policy_path), env_kwargs, host_clock=randomize)
+    controls, feedbacks, stopped = _evaluate_in_process(load_policy(policy_path), env_kwargs, host_clock=randomize)
+    assert stopped or randomize  # the test covers the stop (the randomised hand may squeeze less)
     # Without randomisation deploy runs its default, one episode; with it, the env's episode
     # ends on the drawn latency's clock, which the host does not know: run that many cycles.
     cycles = ["--cycles", str(len(controls) - 1)] if randomize else []
     served_controls, served_feedbacks = _deploy_through_served_env(policy_path, env_kwargs, tmp_path / "log.jsonl",
-                                                                   cycles)
+                                                                   cycles, exit_code=3 if stopped else 0)
     assert len(served_feedbacks) == len(feedbacks) + 1  # + deploy's zero-velocity stop block
     for cycle, (ours, theirs) in enumerate(zip(controls, served_controls)):
         assert ours == theirs, f"control block of cycle {cycle}"

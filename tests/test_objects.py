@@ -18,7 +18,10 @@ from bh8_gym.envs.objects import (
     ObjectSet,
     ObjectSpec,
     PrimitiveRanges,
+    object_family,
     parse_object_file,
+    primitive_size_cells,
+    primitive_split,
     RandomUrdfRanges,
     random_urdf_names,
     random_urdf_spec,
@@ -51,25 +54,57 @@ def test_primitive_sampling_covers_every_kind_and_is_seeded():
     assert sample_primitive(np.random.default_rng(7)) == sample_primitive(np.random.default_rng(7))
 
 
-def test_random_urdf_split_is_fixed_and_disjoint():
-    """Held-out test split = folders whose names end in 0; train = the rest; no overlap."""
-    train, test = random_urdf_names("train"), random_urdf_names("test")
-    assert len(test) == 100 and len(train) == 899  # 900 minus the broken 168
-    assert all(name.endswith("0") for name in test)
-    assert not any(name.endswith("0") for name in train)
-    assert not set(train) & set(test)
+def test_random_urdf_splits_are_fixed_and_disjoint():
+    """Test = folders whose names end in 0, validation = in 5, train = the rest; no overlap, and
+    every model (but the broken 168) in exactly one."""
+    train, validation, test = (random_urdf_names(split) for split in ("train", "validation", "test"))
+    assert (len(train), len(validation), len(test)) == (799, 100, 100)  # 1000 minus the broken 168
+    assert all(name.endswith("0") for name in test) and all(name.endswith("5") for name in validation)
+    assert not any(name[-1] in "05" for name in train)
+    assert len(set(train) | set(validation) | set(test)) == 999
     with pytest.raises(ValueError, match="split"):
-        random_urdf_names("validation")
+        random_urdf_names("holdout")
+
+
+@pytest.mark.parametrize("kind", ["box", "cylinder", "sphere", "capsule"])
+def test_primitive_size_cells_split_each_kind(kind):
+    """Each kind's 5 mm size cells fall in exactly one split; test and validation hold about 10 %
+    each and at least one cell; the split is fixed (hash of the cell), not drawn with a seed."""
+    every = set(primitive_size_cells(kind, None))
+    splits = {split: set(primitive_size_cells(kind, split)) for split in ("train", "validation", "test")}
+    assert set().union(*splits.values()) == every
+    assert sum(len(cells) for cells in splits.values()) == len(every)
+    for held_out in ("validation", "test"):
+        assert 1 <= len(splits[held_out]) <= max(1, round(0.1 * len(every)))
+    assert primitive_size_cells(kind, "test") == primitive_size_cells(kind, "test")
+
+
+@given(seed=st.integers(0, 2**32 - 1), split=st.sampled_from(["train", "validation", "test"]))
+@settings(max_examples=150, deadline=None)
+def test_a_primitive_drawn_from_a_split_belongs_to_it(seed, split):
+    spec = sample_primitive(np.random.default_rng(seed), split=split)
+    assert primitive_split(spec) == split
+    if spec.kind == "capsule":
+        assert spec.size[1] >= spec.size[0]
 
 
 def test_named_sets_sample_from_their_split():
     rng = np.random.default_rng(0)
-    test_set = ObjectSet.named("test")
-    for _ in range(20):
-        spec = test_set.sample(rng)
-        assert spec.kind == "mesh" and spec.name.startswith("random_urdf/") and spec.name.endswith("0")
-    train_set = ObjectSet.named("train")
-    assert not any(train_set.sample(rng).name.endswith("0") for _ in range(20))
+    for name, ending in (("test", "0"), ("validation", "5")):
+        objects = ObjectSet.named(name)
+        for _ in range(20):
+            spec = objects.sample(rng)
+            assert spec.kind == "mesh" and spec.name.startswith("random_urdf/") and spec.name.endswith(ending)
+            assert object_family(spec) == "random_urdf"
+    assert not any(ObjectSet.named("train").sample(rng).name[-1] in "05" for _ in range(20))
+    for split in ("train", "validation", "test"):
+        primitives = [ObjectSet.named(f"primitives-{split}").sample(rng) for _ in range(20)]
+        assert all(primitive_split(spec) == split and object_family(spec) == spec.kind for spec in primitives)
+    mixed = [ObjectSet.named("mixed-test").sample(rng) for _ in range(60)]
+    families = {object_family(spec) for spec in mixed}
+    assert "random_urdf" in families and families - {"random_urdf"}
+    assert all(spec.name.endswith("0") if object_family(spec) == "random_urdf" else primitive_split(spec) == "test"
+               for spec in mixed)
     assert all(ObjectSet.named("primitives").sample(rng).kind != "mesh" for _ in range(20))
     with pytest.raises(ValueError, match="object_set"):
         ObjectSet.named("kitchen")
@@ -95,7 +130,7 @@ def test_random_urdf_models_are_scaled_into_a_graspable_size(client):
 def test_models_with_broken_meshes_are_left_out_of_the_splits():
     """pybullet_data's random_urdfs/168 has NaN vertices: it is in no split, and asking for it by
     name raises a ValueError naming it instead of loading a NaN-scaled body."""
-    assert "168" not in random_urdf_names("train") + random_urdf_names("test")
+    assert all("168" not in random_urdf_names(split) for split in ("train", "validation", "test"))
     with pytest.raises(ValueError, match="168"):
         random_urdf_spec("168", np.random.default_rng(0))
 

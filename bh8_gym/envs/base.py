@@ -28,6 +28,11 @@ Observation (float32, `observation_fields` names every entry):
 
 Only things a host knows on real hardware are in it. `privileged=True` appends simulator state
 (object pose, contacts) and puts it in info["privileged"]; `bh8 deploy` refuses such policies.
+
+Safety (`bh8_gym.safety.SafetyEnvelope`, kwarg `safety`): the limits `bh8 deploy` enforces. LCV
+actions lie within ±max_velocity, and a step whose feedback shows a finger's strain above
+max_strain ends the episode as deploy would stop the hand: terminated, no success,
+info["safety_stop"] naming the reading, plus the subclass's `_safety_stop_reward`.
 """
 from __future__ import annotations
 
@@ -45,6 +50,7 @@ from bh8_gym.envs.randomization import (
     sample_processing_time,
 )
 from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
+from bh8_gym.safety import SafetyEnvelope
 
 # §5.4.1 BAUD values × 100 (bits per second).
 SUPPORTED_BAUDS = (600, 1200, 2400, 4800, 9600, 19200, 38400)
@@ -99,6 +105,7 @@ class BH8LoopEnv(gym.Env):
         privileged: bool,
         render_mode: str | None,
         render_size: tuple[int, int],
+        safety: SafetyEnvelope | dict | None = None,
     ):
         from bh8_gym.plant import SPREAD_MOTOR  # the plant (and PyBullet) load with the first env
 
@@ -143,6 +150,7 @@ class BH8LoopEnv(gym.Env):
             raise ValueError(f"render_size {render_size!r}: {error}") from None
         self.randomize = bool(randomize)
         self.randomization = dataclass_from(RandomizationRanges, randomization, "randomization")
+        self.safety = dataclass_from(SafetyEnvelope, safety, "safety")
         self.episode_seconds = float(episode_seconds)
         self.coefficients = {"LCVC": int(lcvc), "LFVC": int(lfvc), "LFDPC": int(lfdpc)}
 
@@ -179,9 +187,10 @@ class BH8LoopEnv(gym.Env):
         self._seconds_per_byte = BITS_PER_BYTE / self.baud
         self._feedback_seconds = self.layout.feedback_size * self._seconds_per_byte
 
-        # Action space: the control data of one block, in control_fields order.
-        low = [-128 if name == "LCV" else 0 for _, name in self.layout.control_fields]
-        high = [127 if name == "LCV" else 255 for _, name in self.layout.control_fields]
+        # Action space: the control data of one block, in control_fields order; LCV inside the envelope.
+        velocity_low, velocity_high = self.safety.velocity_bounds
+        low = [velocity_low if name == "LCV" else 0 for _, name in self.layout.control_fields]
+        high = [velocity_high if name == "LCV" else 255 for _, name in self.layout.control_fields]
         if any(name == "LCT" for _, name in self.layout.control_fields):
             raise ValueError("LCT (firmware 4.4 torque control) is not supported by the environments")
         self.action_space = gym.spaces.Box(np.array(low, np.int16), np.array(high, np.int16), dtype=np.int16)
@@ -223,6 +232,9 @@ class BH8LoopEnv(gym.Env):
         self.observation_fields: tuple[str, ...] = tuple(names)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(len(names),), dtype=np.float32)
         self._n_fb = len(self.layout.feedback_fields)
+        # (motor, index in the decoded feedback) of each finger's strain: the envelope's check.
+        self._strain_fields = [(motor, index) for index, (motor, name) in enumerate(self.layout.feedback_fields)
+                               if name == "LFS" and motor != SPREAD_MOTOR]
         self._n_act = len(self.layout.control_fields)
         self._obs = np.zeros(len(names), dtype=np.float32)
 
@@ -301,6 +313,10 @@ class BH8LoopEnv(gym.Env):
     def _reward(self, values: tuple[int, ...], elapsed: float, done: bool) -> tuple[float, dict, bool, bool]:
         """(reward, reward terms, is_success, terminated) after a step."""
         raise NotImplementedError
+
+    def _safety_stop_reward(self) -> float:
+        """The reward term "safety" of a step that ends the episode with a safety stop."""
+        return 0.0
 
     def _begin_episode(self, rng: np.random.Generator) -> None:
         """Draw and place the episode's scene (after the snapshot was restored)."""
@@ -486,6 +502,13 @@ class BH8LoopEnv(gym.Env):
             "reward_terms": terms,
             "time": elapsed,
         }
+        stop = self.safety.strain_violation([(motor, values[index]) for motor, index in self._strain_fields])
+        if stop is not None:  # bh8 deploy would stop the hand here: the episode ends, unsuccessful
+            terms = {**terms, "safety": self._safety_stop_reward()}
+            if "success" in terms:
+                terms["success"] = 0.0
+            reward = sum(terms.values())
+            terminated, info["is_success"], info["reward_terms"], info["safety_stop"] = True, False, terms, stop
         if self.privileged:
             info["privileged"] = self._privileged_info()
         if self.render_mode == "human":

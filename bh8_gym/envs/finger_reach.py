@@ -62,6 +62,7 @@ class BH8FingerReachEnv(BH8LoopEnv):
         privileged: bool = False,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
+        safety=None,
     ):
         if not (isinstance(loop_gain, (int, np.integer)) and 0 <= loop_gain <= 255):
             raise ValueError(f"loop_gain (FPG) must be an integer 0..255, got {loop_gain!r}")
@@ -78,7 +79,7 @@ class BH8FingerReachEnv(BH8LoopEnv):
             extra_motor_settings="" if lcpg else f"FPG {self.loop_gain}",
             episode_seconds=episode_seconds, randomize=randomize, randomization=randomization,
             plant_parameters=plant_parameters, privileged=privileged, render_mode=render_mode,
-            render_size=render_size,
+            render_size=render_size, safety=safety,
         )
         fields = self.layout.feedback_fields
         # Plain lists: a handful of values per step, cheaper in Python than in numpy.

@@ -43,6 +43,7 @@ class GraspRewardWeights:
     lift: float = 0.05
     success: float = 10.0
     reach_scale: float = 0.10  # metres: a distance of this size costs `reach` per step
+    safety_stop: float = 5.0  # the penalty of a step that ends the episode with a safety stop
 
 
 SHAKE_AMPLITUDE = 0.01  # metres; `shake=True` shakes the wrist ±1 cm at 2 Hz during hold
@@ -83,6 +84,7 @@ class BH8GraspEnv(BH8LoopEnv):
         privileged: bool = False,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
+        safety=None,
     ):
         if object_files is not None:  # replaces object_set; an empty list is an error, not primitives
             self.object_set = ObjectSet.from_files(object_files)
@@ -107,7 +109,7 @@ class BH8GraspEnv(BH8LoopEnv):
             firmware_profile=firmware_profile, extra_motor_settings="",
             episode_seconds=arm.total_seconds, randomize=randomize, randomization=randomization,
             plant_parameters=plant_parameters, privileged=privileged, render_mode=render_mode,
-            render_size=render_size,
+            render_size=render_size, safety=safety,
         )
         self._phase_durations = self.arm.durations
 
@@ -209,6 +211,9 @@ class BH8GraspEnv(BH8LoopEnv):
         # The arm's schedule is the task, not a time limit outside it: its end is terminal (no
         # bootstrapping past it), and the observation carries the clock that leads there.
         return sum(terms.values()), terms, success, done
+
+    def _safety_stop_reward(self) -> float:
+        return -self.weights.safety_stop
 
     def _camera(self):
         from bh8_gym.rendering import Camera

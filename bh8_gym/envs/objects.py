@@ -11,16 +11,25 @@ Sizes are graspable by the BH8-262 (manual App. A: fingers 70 + 50 mm long; the 
 knuckles 50 mm apart): 3-9 cm. Masses 50-400 g stay well inside the 2 kg-per-fingertip payload
 (App. A) so a grasp fails for lack of a good grasp, not for lack of strength.
 
-Object sets (kwarg `object_set` of the environments):
+Object sets (kwarg `object_set` of the environments), each object in exactly one of three splits:
+train (learning), validation (model selection, early stopping, tuning) and test (reported only).
 
-- ``"primitives"``: boxes, cylinders, spheres and capsules with sizes, masses and friction drawn
-  from `PrimitiveRanges` every episode.
-- ``"train"`` / ``"test"``: pybullet_data's ``random_urdfs`` models (1000 random convex-decomposed
-  blobs), each scaled so its largest bounding-box extent is a fixed per-model size in
-  `RandomUrdfRanges.extent` (flat ones scaled up to `min_height`, within `max_extent`). The held-out test split is the models whose folder name ends in 0
-  (100 models); train is the other 899 (168 has a broken mesh). Fixed by name, so it never changes with seeds.
-- ``"mixed"``: primitives half the time, train models the other half.
-- ``"all"``: primitives, train and test (demonstrations, not evaluation).
+- ``"train"`` / ``"validation"`` / ``"test"``: pybullet_data's ``random_urdfs`` models (1000
+  random convex-decomposed blobs), each scaled so its largest bounding-box extent is a fixed
+  per-model size in `RandomUrdfRanges.extent` (flat ones scaled up to `min_height`, within
+  `max_extent`). Test is the models whose folder name ends in 0 (100 models), validation those
+  ending in 5 (100), train the other 799 (168 has a broken mesh). Fixed by name, never by seed.
+- ``"primitives-train"`` / ``"primitives-validation"`` / ``"primitives-test"``: procedural boxes,
+  cylinders, spheres and capsules. Sizes are split by cell: each full extent in 5 mm cells, so a
+  size cell is a (kind, cells) tuple; per kind, a fixed hash order of its cells puts 10 % of them
+  (at least one) in test and 10 % in validation (`primitive_size_cells`). An episode draws a kind,
+  a cell of the split, a size within the cell, and a mass and friction (`PrimitiveRanges`).
+- ``"mixed"`` / ``"mixed-validation"`` / ``"mixed-test"``: the primitives and the random_urdfs of a
+  split, half the episodes each.
+- ``"primitives"`` (every cell) and ``"all"`` (every object): demonstrations, not evaluation.
+
+`object_family(spec)` names an object's family for reports: "random_urdf", the primitive's kind,
+or "file".
 
 User objects: `parse_object_file` / `ObjectSet.from_files` take URDF files (optionally with a
 global scale) and meshes (OBJ/STL with a scale and a mass); see `parse_object_file`. Every object
@@ -59,7 +68,12 @@ from bh8_gym.plant import (
 
 PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
 FILE_KINDS = ("urdf", "mesh")
-OBJECT_SETS = ("primitives", "train", "test", "mixed", "all")
+SPLITS = ("train", "validation", "test")
+OBJECT_SETS = ("train", "validation", "test", "primitives-train", "primitives-validation", "primitives-test",
+               "mixed", "mixed-validation", "mixed-test", "primitives", "all")
+# Size cells of the procedural primitives (metres), and the share of each kind's cells held out.
+PRIMITIVE_CELL = 0.005
+HELD_OUT_SHARE = {"test": 0.10, "validation": 0.10}
 
 
 @dataclass(frozen=True)
@@ -119,6 +133,7 @@ class PrimitiveRanges:
     # tabletop objects against the BarrettHand's rubber-padded fingers.
     friction: tuple[float, float] = (0.4, 1.2)
     kinds: tuple[str, ...] = PRIMITIVE_KINDS
+    capsule_max_diameter: float = 0.06  # metres: a thicker capsule is too round to lie still
 
 
 @dataclass(frozen=True)
@@ -145,15 +160,19 @@ def random_urdf_root() -> Path:
 BROKEN_RANDOM_URDFS = frozenset({"168"})
 
 
+def random_urdf_split(name: str) -> str:
+    """The split of random_urdfs model `name`: "test" if its name ends in 0, "validation" in 5,
+    else "train"."""
+    return {"0": "test", "5": "validation"}.get(name[-1:], "train")
+
+
 def random_urdf_names(split: str) -> tuple[str, ...]:
-    """Model folder names of a split: "test" = names ending in 0 (held out), "train" = the rest
-    (without BROKEN_RANDOM_URDFS)."""
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    """Model folder names of a split (`random_urdf_split`, without BROKEN_RANDOM_URDFS)."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
     root = random_urdf_root()
     names = sorted(p.name for p in root.iterdir() if (p / f"{p.name}.urdf").is_file()) if root.is_dir() else []
-    held_out = split == "test"
-    return tuple(n for n in names if n.endswith("0") == held_out and n not in BROKEN_RANDOM_URDFS)
+    return tuple(n for n in names if random_urdf_split(n) == split and n not in BROKEN_RANDOM_URDFS)
 
 
 _MESH_SCALE = re.compile(r"\s+")
@@ -202,28 +221,98 @@ def random_urdf_spec(name: str, rng: np.random.Generator, ranges: RandomUrdfRang
     )
 
 
-def sample_primitive(rng: np.random.Generator, ranges: PrimitiveRanges = PrimitiveRanges()) -> ObjectSpec:
-    """A random box, cylinder, sphere or capsule within `ranges`."""
-    kind = ranges.kinds[int(rng.integers(len(ranges.kinds)))]
+def _cell_edges(low: float, high: float) -> np.ndarray:
+    """Edges of the 5 mm size cells covering [low, high] (the last cell may be shorter)."""
+    count = max(1, int(np.ceil((high - low) / PRIMITIVE_CELL - 1e-9)))
+    return np.minimum(low + PRIMITIVE_CELL * np.arange(count + 1), high)
+
+
+def _size_dimensions(kind: str, ranges: "PrimitiveRanges") -> list[tuple[float, float]]:
+    """(low, high) of each full extent a primitive of `kind` draws."""
     lo, hi = ranges.extent
     if kind == "box":
-        size = tuple(float(v) for v in rng.uniform(lo, hi, 3))
-    elif kind == "cylinder":
-        size = (float(rng.uniform(lo, hi)), float(rng.uniform(lo, hi)))
-    elif kind == "sphere":
-        size = (float(rng.uniform(lo, hi)),)
-    else:
-        diameter = float(rng.uniform(lo, min(hi, 0.06)))
-        size = (diameter, float(rng.uniform(max(lo, diameter), hi)))
+        return [(lo, hi)] * 3
+    if kind == "cylinder":
+        return [(lo, hi)] * 2
+    if kind == "sphere":
+        return [(lo, hi)]
+    return [(lo, min(hi, ranges.capsule_max_diameter)), (lo, hi)]  # capsule: diameter, length
+
+
+def primitive_size_cells(kind: str, split: str | None, ranges: "PrimitiveRanges" = None) -> tuple[tuple[int, ...], ...]:
+    """The size cells (one cell index per extent) of `kind` in `split` (None: every cell). Per kind,
+    the cells in the order of a fixed hash of their indices: the first HELD_OUT_SHARE["test"] of
+    them (at least one) are test, the next share validation, the rest train."""
+    ranges = ranges or PrimitiveRanges()
+    counts = [len(_cell_edges(*bounds)) - 1 for bounds in _size_dimensions(kind, ranges)]
+    cells = [tuple(int(i) for i in index) for index in np.ndindex(*counts)]
+    if kind == "capsule":  # its length (caps included) is at least its diameter
+        cells = [cell for cell in cells if cell[1] >= cell[0]]
+    if split is None:
+        return tuple(cells)
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    cells.sort(key=lambda cell: _unit_hash(f"{kind}/{cell}"))
+    n_test = max(1, int(round(HELD_OUT_SHARE["test"] * len(cells))))
+    n_validation = max(1, int(round(HELD_OUT_SHARE["validation"] * len(cells))))
+    bounds = {"test": (0, n_test), "validation": (n_test, n_test + n_validation),
+              "train": (n_test + n_validation, len(cells))}[split]
+    return tuple(sorted(cells[bounds[0]:bounds[1]]))
+
+
+def primitive_split(spec: ObjectSpec, ranges: "PrimitiveRanges" = None) -> str:
+    """The split whose size cells hold primitive `spec`'s size."""
+    ranges = ranges or PrimitiveRanges()
+    cell = tuple(int(np.clip(np.searchsorted(_cell_edges(*bounds), size, side="right") - 1, 0,
+                             len(_cell_edges(*bounds)) - 2))
+                 for size, bounds in zip(spec.size, _size_dimensions(spec.kind, ranges)))
+    for split in SPLITS:
+        if cell in primitive_size_cells(spec.kind, split, ranges):
+            return split
+    raise ValueError(f"{spec!r} lies outside the primitive ranges")
+
+
+def sample_primitive(rng: np.random.Generator, ranges: PrimitiveRanges = PrimitiveRanges(),
+                     split: str | None = None) -> ObjectSpec:
+    """A random box, cylinder, sphere or capsule of `split`'s size cells (None: any size in `ranges`)."""
+    kind = ranges.kinds[int(rng.integers(len(ranges.kinds)))]
+    cells = _split_cells(kind, split, ranges)
+    cell = cells[int(rng.integers(len(cells)))]
+    size = []
+    for index, bounds in zip(cell, _size_dimensions(kind, ranges)):
+        edges = _cell_edges(*bounds)
+        low = max(edges[index], size[0]) if kind == "capsule" and size else edges[index]  # length >= diameter
+        size.append(float(rng.uniform(low, edges[index + 1])))
     colour = tuple(float(c) for c in rng.uniform(0.3, 0.95, 3)) + (1.0,)
     return ObjectSpec(
         kind=kind,
-        size=size,
+        size=tuple(size),
         mass=float(rng.uniform(*ranges.mass)),
         friction=float(rng.uniform(*ranges.friction)),
         name=kind,
         rgba=colour,
     )
+
+
+_CELL_CACHE: dict = {}
+
+
+def _split_cells(kind: str, split: str | None, ranges: PrimitiveRanges) -> tuple[tuple[int, ...], ...]:
+    key = (kind, split, ranges.extent, ranges.capsule_max_diameter)
+    if key not in _CELL_CACHE:
+        _CELL_CACHE[key] = primitive_size_cells(kind, split, ranges)
+    return _CELL_CACHE[key]
+
+
+def object_family(spec: ObjectSpec | None) -> str:
+    """An object's family for reports: "random_urdf", the primitive's kind, "file" (a user's object)."""
+    if spec is None:
+        return "(none)"
+    if spec.name.startswith("random_urdf/"):
+        return "random_urdf"
+    if spec.kind in PRIMITIVE_KINDS:
+        return spec.kind
+    return "file"
 
 
 def parse_object_file(text: str | os.PathLike | ObjectSpec) -> ObjectSpec:
@@ -270,17 +359,21 @@ class ObjectSet:
     primitive_ranges: PrimitiveRanges = field(default_factory=PrimitiveRanges)
     urdf_ranges: RandomUrdfRanges = field(default_factory=RandomUrdfRanges)
     name: str = ""
+    primitive_split: str | None = None  # the primitives' size cells (None: all)
 
     @classmethod
     def named(cls, name: str) -> "ObjectSet":
+        if name in SPLITS:
+            return cls(primitive_weight=0.0, urdf_names=random_urdf_names(name), name=name)
+        if name.startswith("primitives-") and name[len("primitives-"):] in SPLITS:
+            return cls(primitive_weight=1.0, name=name, primitive_split=name[len("primitives-"):])
+        if name == "mixed" or (name.startswith("mixed-") and name[len("mixed-"):] in ("validation", "test")):
+            split = name[len("mixed-"):] if "-" in name else "train"
+            return cls(primitive_weight=0.5, urdf_names=random_urdf_names(split), name=name, primitive_split=split)
         if name == "primitives":
             return cls(primitive_weight=1.0, name=name)
-        if name in ("train", "test"):
-            return cls(primitive_weight=0.0, urdf_names=random_urdf_names(name), name=name)
-        if name == "mixed":
-            return cls(primitive_weight=0.5, urdf_names=random_urdf_names("train"), name=name)
         if name == "all":
-            names = random_urdf_names("train") + random_urdf_names("test")
+            names = sum((random_urdf_names(split) for split in SPLITS), ())
             return cls(primitive_weight=0.5, urdf_names=tuple(sorted(names)), name=name)
         raise ValueError(f"object_set must be one of {OBJECT_SETS}, got {name!r}")
 
@@ -301,7 +394,7 @@ class ObjectSet:
         if self.files:
             return self.files[int(rng.integers(len(self.files)))]
         if not self.urdf_names or rng.random() < self.primitive_weight:
-            return sample_primitive(rng, self.primitive_ranges)
+            return sample_primitive(rng, self.primitive_ranges, self.primitive_split)
         return random_urdf_spec(self.urdf_names[int(rng.integers(len(self.urdf_names)))], rng, self.urdf_ranges)
 
 

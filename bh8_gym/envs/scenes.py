@@ -19,7 +19,7 @@ from math import cos, pi, radians, sin
 
 import numpy as np
 
-from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
+from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.envs.objects import ObjectLoader, ObjectSet, ObjectSpec
 
 # Quaternion (x, y, z, w) turning the wrist frame's z axis (out through the palm, §9.5) to world -z.
@@ -80,20 +80,36 @@ class ArmSchedule:
 
 @dataclass(frozen=True)
 class PlacementRanges:
-    """Where the arm puts the hand relative to the object (uniform draws)."""
+    """Where the arm puts the hand relative to the object (uniform draws): what a vision-guided pick
+    pipeline does. It sees the object from above, centres the palm over it (with `position_error`
+    and `yaw_error`), estimates the object's top (with `top_error`) and stops the palm there: the
+    knuckle housings (KNUCKLE_HEIGHT proud of the palm face) `clearance` above the estimated top,
+    but never so low that a closing finger would reach the table (FINGER_SWEEP_DEPTH plus
+    `fingertip_margin`): a short object is met by the fingertips' sweep just above the table."""
 
-    # A vision-guided arm's placement error: ±2 cm, ±15° (lead's design; typical of a
-    # calibrated RGB-D pipeline on a tabletop).
+    # A calibrated RGB-D pipeline on a tabletop: ±2 cm, ±15° in the plane (lead's design), ±5 mm
+    # on the object's top (depth noise of a structured-light camera at about 0.5 m).
     position_error: float = 0.02  # metres, each of x and y
     yaw_error: float = radians(15.0)
-    # The knuckle housings above the object's top (they stand KNUCKLE_HEIGHT, 15 mm, proud of the
-    # palm face), metres.
-    clearance: tuple[float, float] = (0.01, 0.03)
-    # Closing fingertips sweep down to 95 mm below the palm face (FK along the 3:1 coupling: deepest
-    # at an inner angle of 50°, 60 mm from the palm axis); the rounded fingertip adds about 10 mm
-    # and 10 mm of margin keeps it off the table, so fingers meet the object's side instead of
-    # stalling on the table (measured: at 0.10 m the tips stall on the table near 4,100 counts).
-    min_palm_above_table: float = 0.115
+    top_error: float = 0.005  # metres
+    # The knuckle housings above the estimated top, metres: at least top_error, so they never
+    # start inside the object.
+    clearance: tuple[float, float] = (0.005, 0.02)
+    # Above the table, the deepest point of the closing fingers' sweep: metres.
+    fingertip_margin: float = 0.005
+
+    def __post_init__(self):
+        if not (self.position_error >= 0 and self.yaw_error >= 0 and self.top_error >= 0
+                and self.fingertip_margin >= 0):
+            raise ValueError(f"PlacementRanges errors and margins must be >= 0, got {self!r}")
+        if not (len(self.clearance) == 2 and self.top_error <= self.clearance[0] <= self.clearance[1]):
+            raise ValueError(f"PlacementRanges.clearance must be (low, high) with top_error <= low <= high, "
+                             f"got {self.clearance!r} with top_error {self.top_error!r}")
+
+    @property
+    def min_palm_above_table(self) -> float:
+        """The lowest the palm face goes above the table (fingertips clear of it by the margin)."""
+        return FINGER_SWEEP_DEPTH + self.fingertip_margin
 
 
 @dataclass(frozen=True)
@@ -104,6 +120,7 @@ class GraspEpisode:
     object_xy: tuple[float, float]  # object centre in the hand's horizontal frame, metres
     object_yaw: float
     clearance: float
+    top_error: float = 0.0  # metres: the pipeline's estimate of the object's top minus the truth
 
 
 class GraspScene:
@@ -155,9 +172,10 @@ class GraspScene:
         error = rng.uniform(-pl.position_error, pl.position_error, 2)
         yaw = float(rng.uniform(-pl.yaw_error, pl.yaw_error))
         clearance = float(rng.uniform(*pl.clearance))
+        top_error = float(rng.uniform(-pl.top_error, pl.top_error))
         # The arm's error puts the hand at +error/+yaw from the object; seen from the hand, the
         # object sits at -error rotated by -yaw.
-        return GraspEpisode(spec, (float(-error[0]), float(-error[1])), -yaw, clearance)
+        return GraspEpisode(spec, (float(-error[0]), float(-error[1])), -yaw, clearance, top_error)
 
     def remove_object(self) -> None:
         """Remove the episode's object (before a PyBullet restoreState, which needs the saved bodies)."""
@@ -175,7 +193,8 @@ class GraspScene:
         low, high = p.getAABB(body, -1, physicsClientId=client)
         height = high[2] - low[2]
         bottom_offset = -5.0 - low[2]
-        palm_above_table = max(height + KNUCKLE_HEIGHT + episode.clearance, self.placement.min_palm_above_table)
+        palm_above_table = max(height + episode.top_error + KNUCKLE_HEIGHT + episode.clearance,
+                                self.placement.min_palm_above_table)
         self.table_top = self.palm_height - palm_above_table
         p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
                                           physicsClientId=client)
