@@ -136,10 +136,96 @@ class SupervisoryBaseline:
         return total, steps, info, grasp_seconds, grasp_seconds
 
 
+class SqueezeBaseline:
+    """Close until contact, finger by finger, then squeeze to a strain target: the best LOOP grasp
+    we could script from the host's feedback (LFS strain and LFAP position per finger).
+
+    Closing: every finger at `close_velocity` with gain `close_gain`. A finger whose strain has
+    risen `contact_rise` over its own reading at reset in two cycles running (one cycle's reading
+    swings ±13 counts as a finger starts), or which has stalled (moved less than `stall_counts` in
+    `stall_cycles` cycles), is in contact: it holds (LCV 0; the worm drive keeps
+    it there) until every finger is in contact or the grasp phase is `squeeze_after` through. Then
+    each finger squeezes: LCV = `squeeze_gain` × (strain target − strain), clipped to
+    ±`squeeze_velocity`, gain `hold_gain`, so the grip stays under the safety envelope's strain
+    limit through the lift and hold. The spread is held at the object's setting (`spread_counts_for`).
+    """
+
+    def __init__(self, env, close_velocity: int = 100, close_gain: int = 255, contact_rise: int = 10,
+                 stall_counts: int = 40, stall_cycles: int = 6, squeeze_after: float = 0.7,
+                 strain_target: int = 205, squeeze_gain: float = 1.0, squeeze_velocity: int = 40,
+                 hold_gain: int = 255, spread_gain: float = 0.1):
+        base = env.unwrapped
+        self.layout = base.layout
+        self.close_velocity, self.close_gain = int(close_velocity), int(close_gain)
+        self.contact_rise, self.stall_counts, self.stall_cycles = int(contact_rise), int(stall_counts), int(stall_cycles)
+        self.squeeze_after = float(squeeze_after)
+        self.strain_target, self.squeeze_gain, self.squeeze_velocity = int(strain_target), float(squeeze_gain), int(squeeze_velocity)
+        self.hold_gain, self.spread_gain = int(hold_gain), float(spread_gain)
+        self.strain_target = min(self.strain_target, base.safety.max_strain - 10)
+        self._cycle_seconds = float(base.cycle_seconds)
+        self._grasp_seconds = float(base.arm.grasp_seconds)
+        space = base.action_space
+        self._low = space.low.astype(np.float64)
+        self._high = space.high.astype(np.float64)
+        self._control_fields = self.layout.control_fields
+        feedback = self.layout.feedback_fields
+        self._strain_index = {m: feedback.index((m, "LFS")) for m in FINGER_MOTORS if (m, "LFS") in feedback}
+        self._position_index = {m: feedback.index((m, "LFAP")) for m in (*FINGER_MOTORS, SPREAD_MOTOR)
+                                if (m, "LFAP") in feedback}
+        self._bytes = np.zeros(len(self._control_fields), dtype=np.int64)
+        self.reset(env)
+
+    def reset(self, env) -> None:
+        self.spread_target = spread_counts_for(episode_object(env))
+        self.zero = None
+        self.contact = {m: False for m in FINGER_MOTORS}
+        self.history = {m: [] for m in FINGER_MOTORS}
+        self.rising = {m: 0 for m in FINGER_MOTORS}  # cycles running with the strain risen
+        self.cycles = 0
+
+    def act(self, observation, info=None) -> np.ndarray:
+        block = (info or {}).get("feedback_block")
+        values = self.layout.decode_feedback(block) if block else None
+        strain = {m: values[i] for m, i in self._strain_index.items()} if values else {}
+        position = {m: values[i] for m, i in self._position_index.items()} if values else {}
+        if self.zero is None:
+            self.zero = dict(strain)
+        for m in FINGER_MOTORS:
+            if m in position:
+                self.history[m].append(position[m])
+            if not self.contact[m]:
+                risen = strain.get(m, 0) - self.zero.get(m, 0) >= self.contact_rise
+                self.rising[m] = self.rising[m] + 1 if risen else 0
+                past = self.history[m][-self.stall_cycles - 1:]
+                stalled = len(past) > self.stall_cycles and past[-1] - past[0] < self.stall_counts
+                self.contact[m] = self.rising[m] >= 2 or stalled
+        squeezing = all(self.contact.values()) or self.cycles * self._cycle_seconds >= self.squeeze_after * self._grasp_seconds
+        self.cycles += 1
+        spread_error = self.spread_target - position.get(SPREAD_MOTOR, 0)
+        for index, (motor, name) in enumerate(self._control_fields):
+            if motor == SPREAD_MOTOR:
+                value = int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV" else self.hold_gain
+            elif squeezing:
+                error = self.strain_target - strain.get(motor, self.strain_target)
+                value = (int(np.clip(self.squeeze_gain * error, -self.squeeze_velocity, self.squeeze_velocity))
+                         if name == "LCV" else self.hold_gain)
+            elif self.contact[motor]:
+                value = 0 if name == "LCV" else self.hold_gain
+            else:
+                value = self.close_velocity if name == "LCV" else self.close_gain
+            self._bytes[index] = value
+        return bytes_to_unit(self._bytes, self._low, self._high)
+
+
+BASELINES = ("supervisory", "loop", "squeeze")
+
+
 def make_baseline(name: str, env):
-    """'supervisory' or 'loop' for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
+    """One of BASELINES for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
     if name == "supervisory":
         return SupervisoryBaseline(env)
     if name == "loop":
         return LoopBaseline(env)
-    raise ValueError(f"baseline must be 'supervisory' or 'loop', got {name!r}")
+    if name == "squeeze":
+        return SqueezeBaseline(env)
+    raise ValueError(f"baseline must be one of {BASELINES}, got {name!r}")

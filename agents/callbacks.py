@@ -1,4 +1,4 @@
-"""SB3 callbacks for `bh8 train`: held-out evaluation with best-model keeping, atomic checkpoints,
+"""SB3 callbacks for `bh8 train`: validation evaluation with best-model keeping, atomic checkpoints,
 a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency), and stopping on a
 signal."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 
 class EvaluationCallback(BaseCallback):
-    """Every `eval_freq` env steps: evaluate the deterministic policy on the held-out env, log it
+    """Every `eval_freq` env steps: evaluate the deterministic policy on the validation env (eval_env_kwargs), log it
     (TensorBoard and evaluations.csv), and keep the best model (success rate, then mean return).
 
     `state` (best scores, None before the first evaluation; next evaluation step) is shared with

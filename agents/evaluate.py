@@ -1,7 +1,8 @@
-"""`bh8 eval`: success rate (95% Wilson CI), per-object table, grasp time, peak strain, a
-training-curve plot and a GIF of sample episodes, for a trained policy (SB3 .zip or exported
-.npz) or a scripted baseline (`--baseline supervisory|loop`), on the held-out objects or on
-object files the user names.
+"""`bh8 eval`: success rate (95% Wilson CI) per object set and per object family, a per-object
+table, grasp time, peak strain, safety stops, a training-curve plot and a GIF of sample episodes,
+for a trained policy (SB3 .zip or exported .npz) or a scripted baseline (`--baseline
+supervisory|loop|squeeze`), on one or more object sets (default: the test splits of the random_urdfs
+and of the primitives, bh8_gym.envs.objects) or on object files the user names.
 
 Metrics per episode:
   success     `info["is_success"]` at the episode's last step (the env decides: object lifted
@@ -34,6 +35,8 @@ from bh8_gym.cli import integer_argument, json_object_argument
 
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
+# The object sets a report gives by default: the test splits (bh8_gym.envs.objects).
+DEFAULT_EVALUATION_SETS = "test,primitives-test"
 # LFS counts above the no-load reading that mean a finger is loaded by contact. No-load readings
 # are 100-140 with per-finger offsets (SPEC.md §1), so the rise is measured from each finger's own
 # reading at reset; 8 counts is well above the gauge's quantisation and below any real grasp load.
@@ -68,6 +71,9 @@ class EpisodeResult:
     sim_seconds: float
     grasp_time: float | None
     peak_strain: int | None
+    object_set: str = ""
+    family: str = ""
+    safety_stop: bool = False
 
 
 def episode_object(env):
@@ -119,15 +125,17 @@ class StrainTracker:
 
 
 def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: bool = True,
-                 baseline=None, progress: bool = False) -> list[EpisodeResult]:
+                 baseline=None, progress: bool = False, object_set: str = "") -> list[EpisodeResult]:
     """Run `n_episodes` (seeds seed, seed+1, ...) with `policy.predict` or a scripted `baseline`.
 
     `env`: a single env (see env_factory.make_env). `baseline`: an object with
     `run_episode(env, seed) -> (return, length, info)` for baselines that use supervisory GCL.
     With `deterministic=False` a policy's exploration noise is drawn anew for every episode
     (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them). `progress`
-    shows a bar on a terminal (`bh8 eval`).
+    shows a bar on a terminal (`bh8 eval`). `object_set` labels the results.
     """
+    from bh8_gym.envs.objects import object_family
+
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
     from tqdm import tqdm
@@ -159,8 +167,12 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
                 length += 1
                 done = terminated or truncated
             grasp_time = None if tracker.grasp_cycle is None else tracker.grasp_cycle * cycle_seconds
+        spec = episode_object(env)
         results.append(EpisodeResult(
-            object_name=object_name(episode_object(env)),
+            object_name=object_name(spec),
+            object_set=object_set,
+            family=object_family(spec) if spec is not None else "",
+            safety_stop="safety_stop" in info,
             success=bool(info.get("is_success", False)),
             episode_return=total,
             length=length,
@@ -192,7 +204,38 @@ def summarize(results: Sequence[EpisodeResult]) -> dict[str, Any]:
         "grasped_episodes": len(grasp_times),
         "mean_peak_strain": float(np.mean(strains)) if strains else None,
         "max_peak_strain": int(max(strains)) if strains else None,
+        "safety_stops": sum(r.safety_stop for r in results),
     }
+
+
+def summaries_by(results: Sequence[EpisodeResult], key: str) -> dict[str, dict[str, Any]]:
+    """`summarize` of the results grouped by an EpisodeResult field ("object_set", "family")."""
+    groups: dict[str, list[EpisodeResult]] = {}
+    for r in results:
+        groups.setdefault(getattr(r, key), []).append(r)
+    return {name: summarize(rows) for name, rows in groups.items()}
+
+
+def group_table(results: Sequence[EpisodeResult]) -> str:
+    """A Markdown table: each object set, each family within it, then all episodes."""
+    lines = ["| object set | family | episodes | success | 95% CI | safety stops | mean peak strain |",
+             "|---|---|---:|---:|---|---:|---:|"]
+
+    def row(object_set: str, family: str, s: dict) -> str:
+        strain = "-" if s["mean_peak_strain"] is None else f"{s['mean_peak_strain']:.1f}"
+        return (f"| {object_set} | {family} | {s['episodes']} | {s['successes']}/{s['episodes']} "
+                f"({s['success_rate']:.1%}) | {s['success_ci_low']:.3f}-{s['success_ci_high']:.3f} | "
+                f"{s['safety_stops']} | {strain} |")
+
+    for object_set, summary in summaries_by(results, "object_set").items():
+        in_set = [r for r in results if r.object_set == object_set]
+        families = summaries_by(in_set, "family")
+        lines.append(row(f"**{object_set}**", "all", summary))
+        if len(families) > 1:
+            lines += [row(object_set, family, families[family]) for family in sorted(families)]
+    if len({r.object_set for r in results}) > 1:
+        lines.append(row("**all**", "all", summarize(results)))
+    return "\n".join(lines)
 
 
 def paired_comparison(ours: Sequence[bool], theirs: Sequence[bool]) -> dict[str, Any]:
@@ -274,7 +317,7 @@ def plot_training_curve(rows: Sequence[dict[str, float]], path: Path) -> Path:
     top.fill_between(steps, [r["success_ci_low"] for r in rows], [r["success_ci_high"] for r in rows],
                      alpha=0.25, label="95% Wilson CI")
     top.set_ylim(-0.02, 1.02)
-    top.set_ylabel("held-out success")
+    top.set_ylabel("validation success")
     top.legend(loc="lower right")
     bottom.plot(steps, [r["mean_return"] for r in rows], marker="o", color="tab:orange")
     bottom.set_ylabel("mean return")
@@ -325,11 +368,13 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("policy", nargs="?", type=Path, help="policy file: SB3 .zip or exported .npz")
-    source.add_argument("--baseline", choices=("supervisory", "loop"), help="evaluate a scripted baseline")
+    source.add_argument("--baseline", choices=("supervisory", "loop", "squeeze"), help="evaluate a scripted baseline")
     parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
     parser.add_argument("--episodes", type=int, default=50, help="episodes (default: %(default)s)")
-    parser.add_argument("--objects", default="test",
-                        help="object set: test (held out), train, primitives, mixed, all (default: %(default)s)")
+    parser.add_argument("--objects", default=DEFAULT_EVALUATION_SETS,
+                        help="object sets, comma-separated, --episodes each: test, validation, train (random_urdfs), "
+                             "primitives-test, primitives-validation, primitives-train, mixed-test, mixed-validation, "
+                             "mixed, primitives, all (default: %(default)s)")
     parser.add_argument("--object-files", nargs="+", default=None, metavar="FILE",
                         help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION] "
                              "(default: none, the --objects set)")
@@ -382,25 +427,36 @@ def run(args: argparse.Namespace) -> int:
         env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
         if metadata.get("env_id") and env_id != metadata["env_id"]:
             raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
-        env_kwargs = {**evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), args.objects, args.object_files,
-                                              args.randomize), **args.env_kwargs}
+        if not env_id.startswith("BH8Grasp"):
+            object_sets = [""]  # no objects
+        elif args.object_files:
+            object_sets = ["files"]
+        else:
+            object_sets = [name.strip() for name in args.objects.split(",") if name.strip()]
+        if not object_sets:
+            raise ValueError(f"--objects {args.objects!r} names no object set")
+        set_kwargs = {name: {**evaluation_env_kwargs(env_id, metadata.get("env_kwargs", {}), name, args.object_files,
+                                                     args.randomize), **args.env_kwargs} for name in object_sets}
+        env_kwargs = set_kwargs[object_sets[0]]
         comparison = (None if args.compare is None
-                      else load_comparison_report(args.compare, args.seed, args.episodes))
+                      else load_comparison_report(args.compare, args.seed, args.episodes * len(object_sets)))
         if args.out is not None:  # before the episodes, not after them
             try:
                 args.out.mkdir(parents=True, exist_ok=True)
             except OSError as error:
                 raise ValueError(f"--out {str(args.out)!r} cannot be a report directory: {error}") from None
-        env = make_env(env_id, env_kwargs)
-        if args.baseline is not None:
-            from bh8_gym.agents.baselines import make_baseline
+        results = []
+        for name in object_sets:
+            env = make_env(env_id, set_kwargs[name])
+            try:
+                if args.baseline is not None:
+                    from bh8_gym.agents.baselines import make_baseline
 
-            baseline = make_baseline(args.baseline, env)
-        try:
-            results = run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
-                                   progress=not args.no_progress)
-        finally:
-            env.close()
+                    baseline = make_baseline(args.baseline, env)
+                results += run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
+                                        progress=not args.no_progress, object_set=name)
+            finally:
+                env.close()
         paired = None
         if comparison is not None:
             theirs = paired_outcomes(*comparison, results)
@@ -412,21 +468,27 @@ def run(args: argparse.Namespace) -> int:
     table = per_object_table(results)
     label = f"baseline {args.baseline}" if baseline is not None else str(args.policy)
     grasp = "n/a" if summary["mean_grasp_time"] is None else f"{summary['mean_grasp_time']:.3f} s"
-    objects = f" ({args.object_files or args.objects})" if env_id.startswith("BH8Grasp") else ""
+    objects = f" ({args.object_files or ', '.join(object_sets)})" if env_id.startswith("BH8Grasp") else ""
     print(f"{label} on {env_id}{objects}, {summary['episodes']} episodes")
-    print(f"success rate {summary['success_rate']:.3f} (95% Wilson CI {summary['success_ci_low']:.3f}-"
-          f"{summary['success_ci_high']:.3f}); mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; "
-          f"peak strain mean {summary['mean_peak_strain']} max {summary['max_peak_strain']}")
+    for name, part in summaries_by(results, "object_set").items():
+        print(f"{name or env_id}: success rate {part['success_rate']:.3f} (95% Wilson CI {part['success_ci_low']:.3f}-"
+              f"{part['success_ci_high']:.3f}) over {part['episodes']} episodes; safety stops {part['safety_stops']}")
+    print(f"mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; peak strain mean "
+          f"{summary['mean_peak_strain']} max {summary['max_peak_strain']}")
+    print(group_table(results))
     print(table)
     if paired is not None:
         print(f"paired with {args.compare} on the same {paired['episodes']} episodes: only this one succeeded "
               f"{paired['only_ours']}, only that one {paired['only_theirs']}, both {paired['both']}, neither "
               f"{paired['neither']}; exact McNemar p = {paired['mcnemar_p']:.3g}")
     if args.out is not None:
-        (args.out / "table.md").write_text(table + "\n")
+        (args.out / "table.md").write_text(group_table(results) + "\n\n" + table + "\n")
         (args.out / "results.json").write_text(json.dumps(
-            {"summary": summary, "episodes": [asdict(r) for r in results], "env_id": env_id, "seed": args.seed,
-             "env_kwargs": env_kwargs, "policy": label, "paired": paired}, indent=2, default=str))
+            {"summary": summary, "by_object_set": summaries_by(results, "object_set"),
+             "by_family": summaries_by(results, "family"), "episodes": [asdict(r) for r in results],
+             "env_id": env_id, "seed": args.seed, "object_sets": object_sets,
+             "env_kwargs": env_kwargs,  # the first object set's (the others differ in object_set only)
+             "policy": label, "paired": paired}, indent=2, default=str))
         curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
         if curve_dir is not None:
             for folder in (curve_dir, curve_dir.parent):

@@ -9,7 +9,7 @@ Output directory layout (`--out DIR`):
     checkpoints/latest.json      timestep counter, the run's total, best evaluation so far, next
                                  evaluation step
     checkpoints/best_model.zip   the best model as of that checkpoint (restored by --resume)
-    best_model.zip               the model with the best held-out success rate (then return)
+    best_model.zip               the model with the best validation success rate (then return)
     final_model.zip              the model at the end of training
     evaluations.csv              one row per periodic evaluation (the training curve)
     tb/                          TensorBoard logs
@@ -521,11 +521,11 @@ def run(args: argparse.Namespace) -> int:
     if state["best_success_rate"] is None:
         final = args.out / "final_model.zip"
         model = final if final.exists() else args.out / CHECKPOINT_DIR / "latest.zip"
-        print(f"trained to {state['num_timesteps']} steps; no held-out evaluation ran (one every "
+        print(f"trained to {state['num_timesteps']} steps; no validation evaluation ran (one every "
               f"{int(config['eval'].get('freq', 10_000))} steps, eval.freq), so there is no best_model.zip; "
               f"the trained model is {model}")
     else:
-        print(f"trained to {state['num_timesteps']} steps; best held-out success rate {state['best_success_rate']:.2f} "
+        print(f"trained to {state['num_timesteps']} steps; best validation success rate {state['best_success_rate']:.2f} "
               f"(step {state['best_timesteps']}, {args.out / BEST_MODEL_FILE}); outputs in {args.out}")
     return 0
 

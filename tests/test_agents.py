@@ -779,3 +779,26 @@ def test_eval_no_progress_hides_the_episode_bar_on_a_terminal(tmp_path, monkeypa
             assert main(["eval", str(policy), "--episodes", "2", "--gif-episodes", "0", *flag]) == 0
         drawn[bool(flag)] = "episodes:" in err.getvalue()
     assert drawn == {False: True, True: False}
+
+
+def test_eval_reports_each_object_set_and_family(tmp_path, capsys):
+    """`bh8 eval --objects A,B`: --episodes per set, each set and each family in it summarised
+    (results.json by_object_set, by_family; the table), the episodes labelled with both."""
+    from bh8_gym.cli import main
+
+    out = tmp_path / "report"
+    assert main(["eval", "--baseline", "loop", "--objects", "validation,primitives-validation", "--episodes", "2",
+                 "--gif-episodes", "0", "--no-progress", "--out", str(out)]) == 0
+    report = json.loads((out / "results.json").read_text())
+    assert report["object_sets"] == ["validation", "primitives-validation"]
+    assert [e["object_set"] for e in report["episodes"]] == ["validation"] * 2 + ["primitives-validation"] * 2
+    assert {e["family"] for e in report["episodes"][:2]} == {"random_urdf"}
+    assert {e["family"] for e in report["episodes"][2:]} <= {"box", "cylinder", "sphere", "capsule"}
+    for name in ("validation", "primitives-validation"):
+        part = report["by_object_set"][name]
+        assert part["episodes"] == 2 and part["successes"] == sum(
+            e["success"] for e in report["episodes"] if e["object_set"] == name)
+    assert report["by_family"]["random_urdf"]["episodes"] == 2
+    printed = capsys.readouterr().out
+    assert "| **validation** | all | 2 |" in printed and "| **primitives-validation** | all | 2 |" in printed
+    assert main(["eval", "--baseline", "loop", "--objects", " , ", "--episodes", "1"]) == 2

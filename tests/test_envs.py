@@ -13,6 +13,7 @@ import warnings
 
 import gymnasium as gym
 import numpy as np
+import pybullet
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -718,3 +719,43 @@ def test_a_squeeze_past_the_safety_envelope_ends_the_episode_as_deploy_would():
 def test_a_bad_safety_envelope_is_a_clear_error(fields, message):
     with pytest.raises(ValueError, match=message):
         gym.make("BH8Grasp-v0", safety=fields)
+
+
+def test_the_arm_places_the_hand_as_a_top_down_pick_pipeline():
+    """envs.scenes.PlacementRanges: the palm is centred on the object's footprint (within the
+    position error), the fingers close across its narrowest width (a box's shorter side along the
+    hand's y axis, F3 opposite F1-F2), the knuckles stop `clearance` above the estimated top
+    (within top_error), and never lower than the fingers' sweep plus the margin
+    (hand_urdf.FINGER_SWEEP_DEPTH): fingertips clear the table."""
+    from bh8_gym.envs.objects import ObjectSet, ObjectSpec
+    from bh8_gym.envs.scenes import GraspEpisode, PlacementRanges
+    from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT
+
+    env = gym.make("BH8Grasp-v0", randomize=False).unwrapped
+    try:
+        scene, client = env.scene, env.plant.client
+        placement = PlacementRanges()
+        for size in ((0.08, 0.03, 0.06), (0.03, 0.08, 0.06), (0.05, 0.05, 0.015)):
+            spec = ObjectSpec("box", size, mass=0.1)
+            episode = GraspEpisode(spec, (0.01, -0.005), 0.0, clearance=0.012, top_error=-0.003)
+            scene.begin_episode(episode)
+            low, high = pybullet.getAABB(scene.object_body, -1, physicsClientId=client)
+            widths = (high[0] - low[0], high[1] - low[1])
+            assert widths[1] == pytest.approx(min(size[:2]), abs=2e-3), size  # across the closing axis
+            assert ((low[0] + high[0]) / 2, (low[1] + high[1]) / 2) == pytest.approx((0.01, -0.005), abs=1e-6)
+            palm_above_table = scene.palm_height - scene.table_top
+            expected = max(size[2] - 0.003 + KNUCKLE_HEIGHT + 0.012, FINGER_SWEEP_DEPTH + placement.fingertip_margin)
+            assert palm_above_table == pytest.approx(expected, abs=1e-9)
+        rng = np.random.default_rng(0)
+        draws = [scene.sample_episode(rng) for _ in range(200)]
+        assert all(abs(d.top_error) <= placement.top_error for d in draws)
+        assert all(placement.clearance[0] <= d.clearance <= placement.clearance[1] for d in draws)
+        mesh = ObjectSet.named("train").sample(rng)  # a random_urdf: its grasp yaw measured, then cached
+        body = scene.loader.create(mesh, (0, 0, -5), (0, 0, 0, 1))
+        yaw = scene.grasp_yaw(mesh, body)
+        assert 0.0 <= yaw < np.pi and scene.grasp_yaw(mesh, body) == yaw
+        scene.loader.remove(body)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="clearance"):
+        PlacementRanges(top_error=0.01, clearance=(0.005, 0.02))

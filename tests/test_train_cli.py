@@ -197,7 +197,7 @@ def test_resume_accepts_options_that_agree_with_the_run(short_run):
     code, out, err = _train("--resume", "--out", run, "--algo", "PPO", "--env", REACH, "--seed", "0",
                             "--config", config, "--timesteps", "64")
     assert code == 0, err
-    assert out.startswith("trained to 64 steps; no held-out evaluation ran")
+    assert out.startswith("trained to 64 steps; no validation evaluation ran")
 
 
 def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
@@ -214,7 +214,7 @@ def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
     assert code == 0, err
     rows = read_evaluations(run)
     assert [(row["timesteps"], row["episodes"]) for row in rows] == [(32.0, 1.0), (64.0, 1.0)]
-    assert "best held-out success rate" in out and str(run / "best_model.zip") in out
+    assert "best validation success rate" in out and str(run / "best_model.zip") in out
     assert (run / "best_model.zip").is_file()
 
 
@@ -278,7 +278,7 @@ def test_resume_removes_a_best_model_written_after_a_checkpoint_without_evaluati
     (copy / "best_model.zip").write_bytes(b"written by an evaluation after the checkpoint")
     code, out, err = _train("--resume", "--out", copy, "--timesteps", "64")
     assert code == 0, err
-    assert not (copy / "best_model.zip").exists() and "no held-out evaluation ran" in out
+    assert not (copy / "best_model.zip").exists() and "no validation evaluation ran" in out
 
 
 def test_resume_reads_checkpoints_written_with_minus_infinity(short_run, tmp_path):
@@ -291,7 +291,7 @@ def test_resume_reads_checkpoints_written_with_minus_infinity(short_run, tmp_pat
     state_path.write_text(json.dumps(state))
     code, out, err = _train("--resume", "--out", copy, "--timesteps", "64")
     assert code == 0, err
-    assert "no held-out evaluation ran" in out
+    assert "no validation evaluation ran" in out
 
 
 # -- outputs ---------------------------------------------------------------------------------------
@@ -299,7 +299,7 @@ def test_resume_reads_checkpoints_written_with_minus_infinity(short_run, tmp_pat
 
 def test_summary_of_a_run_without_evaluation_names_the_final_model(short_run):
     _, run, out = short_run
-    assert "no held-out evaluation ran" in out and "best_model.zip" in out and str(run / "final_model.zip") in out
+    assert "no validation evaluation ran" in out and "best_model.zip" in out and str(run / "final_model.zip") in out
     assert "success rate" not in out
     assert not (run / "best_model.zip").exists() and (run / "final_model.zip").is_file()
 

@@ -11,6 +11,11 @@ Geometry: the hand hangs palm-down at the plant's initial wrist pose (PlantParam
 the plant's TABLE moves under it per episode (placing a static box is a reset, moving the hand would need physics steps).
 Position and yaw errors of the "arm's" placement are applied to the object, which is equivalent
 (only the hand-object relation matters on an unbounded table) and keeps the hand's pose fixed.
+
+The arm's approach is a top-down pick pipeline's (`PlacementRanges`): it centres the palm on the
+object's footprint, turns the hand so that the fingers close across the footprint's narrowest
+width (F3 opposite F1 and F2 along the hand's y axis, the object's longest side along F1-F2), and
+stops the palm above the object's estimated top; each with the pipeline's error.
 """
 from __future__ import annotations
 
@@ -112,13 +117,17 @@ class PlacementRanges:
         return FINGER_SWEEP_DEPTH + self.fingertip_margin
 
 
+# Yaws (degrees) the pipeline tries for a mesh's grasp axis (`GraspScene.grasp_yaw`).
+GRASP_YAW_STEP_DEG = 5
+
+
 @dataclass(frozen=True)
 class GraspEpisode:
     """Everything drawn for one grasp episode (the environment and `bh8 serve --env` share it)."""
 
     spec: ObjectSpec
-    object_xy: tuple[float, float]  # object centre in the hand's horizontal frame, metres
-    object_yaw: float
+    object_xy: tuple[float, float]  # footprint centre in the hand's horizontal frame, metres
+    object_yaw: float  # radians: the pipeline's yaw error (the object turned from its grasp yaw)
     clearance: float
     top_error: float = 0.0  # metres: the pipeline's estimate of the object's top minus the truth
 
@@ -154,6 +163,7 @@ class GraspScene:
         self.table_top = 0.0
         self.object_body: int | None = None
         self.object_rest_z = 0.0
+        self._grasp_yaws: dict[tuple, float] = {}
         self.episode: GraspEpisode | None = None
         self.start_time: float | None = None
         plant.set_wrist_pose(self.wrist_start, WRIST_PALM_DOWN, teleport=True)
@@ -183,24 +193,47 @@ class GraspScene:
             self.loader.remove(self.object_body)
             self.object_body = None
 
+    def grasp_yaw(self, spec: ObjectSpec, body: int) -> float:
+        """The object's yaw (radians) at which its footprint is narrowest along the hand's closing
+        axis (y): a box turns its shorter side across, a round object needs no turn, a mesh is
+        measured at every GRASP_YAW_STEP_DEG (cached per shape)."""
+        if spec.kind == "box":
+            return 0.0 if spec.size[1] <= spec.size[0] else pi / 2.0
+        if spec.kind in ("cylinder", "sphere", "capsule"):
+            return 0.0
+        key = spec.shape_key
+        if key not in self._grasp_yaws:
+            p, client = self._p, self.client
+            widths = []
+            for degrees in range(0, 180, GRASP_YAW_STEP_DEG):
+                half = radians(degrees) / 2.0
+                p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), (0.0, 0.0, sin(half), cos(half)),
+                                                  physicsClientId=client)
+                low, high = p.getAABB(body, -1, physicsClientId=client)
+                widths.append((round(high[1] - low[1], 4), degrees))  # 0.1 mm: ties go to the smaller yaw
+            self._grasp_yaws[key] = radians(min(widths)[1])
+        return self._grasp_yaws[key]
+
     def begin_episode(self, episode: GraspEpisode) -> None:
         """Place the table and the object for `episode`; the arm starts at the next cycle."""
         p, client = self._p, self.client
         self.remove_object()
-        half_yaw = episode.object_yaw / 2.0
+        body = self.loader.create(episode.spec, (0.0, 0.0, -5.0), (0.0, 0.0, 0.0, 1.0))
+        half_yaw = (self.grasp_yaw(episode.spec, body) + episode.object_yaw) / 2.0
         orientation = (0.0, 0.0, sin(half_yaw), cos(half_yaw))
-        body = self.loader.create(episode.spec, (episode.object_xy[0], episode.object_xy[1], -5.0), orientation)
+        p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), orientation, physicsClientId=client)
         low, high = p.getAABB(body, -1, physicsClientId=client)
         height = high[2] - low[2]
         bottom_offset = -5.0 - low[2]
+        centre_x, centre_y = (low[0] + high[0]) / 2.0, (low[1] + high[1]) / 2.0  # the footprint's centre
         palm_above_table = max(height + episode.top_error + KNUCKLE_HEIGHT + episode.clearance,
                                 self.placement.min_palm_above_table)
         self.table_top = self.palm_height - palm_above_table
         p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
                                           physicsClientId=client)
         self.object_rest_z = self.table_top + bottom_offset + 1e-4
-        p.resetBasePositionAndOrientation(body, (episode.object_xy[0], episode.object_xy[1], self.object_rest_z),
-                                          orientation, physicsClientId=client)
+        p.resetBasePositionAndOrientation(body, (episode.object_xy[0] - centre_x, episode.object_xy[1] - centre_y,
+                                                 self.object_rest_z), orientation, physicsClientId=client)
         self.object_body = body
         self.episode = episode
         self.start_time = None
