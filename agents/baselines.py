@@ -19,11 +19,10 @@ import numpy as np
 from bh8_gym.agents.evaluate import episode_object
 from bh8_gym.envs.base import END_TOLERANCE_S
 from bh8_gym.envs.wrappers import bytes_to_unit
+from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 SPREAD_COUNTS_PER_DEGREE = 17.5  # BH8-262, SPEC.md §1
 SPREAD_DEGREES = {"sphere": 60.0}  # every other object kind: 0 (fingers opposite F3)
-FINGER_MOTORS = (1, 2, 3)
-SPREAD_MOTOR = 4
 
 
 def spread_counts_for(spec) -> int:

@@ -47,8 +47,8 @@ import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
-from bh8_gym.client import VALID_BAUD_RATES
 from bh8_gym.envs.wrappers import unit_to_bytes
+from bh8_gym.protocol import BAUD_RATES
 from bh8_gym.safety import NO_VELOCITY_CLAMP, SafetyEnvelope
 from bh8_gym.status import BH8Error
 
@@ -356,7 +356,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter  # keeps the epilog's lines
     parser.add_argument("--port", required=True, help="serial port or pyserial URL (e.g. /dev/ttyUSB0, bh8sim://)")
     parser.add_argument("--policy", required=True, type=Path, help="policy file (.npz export or SB3 .zip)")
-    parser.add_argument("--baud", type=int, choices=VALID_BAUD_RATES, default=9600, metavar="RATE",
+    parser.add_argument("--baud", type=int, choices=BAUD_RATES, default=9600, metavar="RATE",
                         help="the hand's current rate, one of %(choices)s (default %(default)s, after power-up)")
     parser.add_argument("--cycles", type=integer_argument(1), default=None,
                         help="policy cycles after the first 'A' block, >= 1 "

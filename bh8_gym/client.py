@@ -29,17 +29,12 @@ try:
 except ImportError:  # Windows
     _TermiosError = OSError
 
+from bh8_gym.protocol import BAUD_RATES, BITS_PER_BYTE, FIRMWARE_PROFILES, LINE_END, MOTOR_PREFIXES, MOTORS, PROMPT
 from bh8_gym.realtime_codec import ACK, HEADER_EXIT, LoopLayout, MotorFlags
 from bh8_gym.status import BH8Error, HandError, HandTimeout, ProtocolError, parse_status
 
-PROMPT = b"=> "
 CR = b"\r"
-LINE_END = b"\n\r"
 BANNER = b"BarrettHand Firmware"  # RESET's banner contains it (SPEC.md §2; Barrett's API checks it)
-
-# Baud rates the hand accepts: §5.4.1 BAUD is the rate / 100, one of 6 12 24 48 96 192 384.
-VALID_BAUD_RATES = (600, 1200, 2400, 4800, 9600, 19200, 38400)
-BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit (§9.1)
 
 # How long one port.read() may block before the client looks at its own deadline again. Set once
 # on the port (changing a pyserial timeout reconfigures the tty every time).
@@ -79,7 +74,6 @@ _COMMAND_WORD = re.compile(r"^\s*([1-4GSgs]*)\s*([A-Za-z?]+)")  # the firmware t
 _PARAMETER_NAME = re.compile(r"^[A-Z][A-Z0-9]*$")
 _VERSION = re.compile(r"(\d+)\.(\d+)")
 
-MOTOR_PREFIX_CHARS = {"1": (1,), "2": (2,), "3": (3,), "4": (4,), "G": (1, 2, 3), "S": (4,)}
 # Motor parameters that configure RealTime blocks (§5.3.3; LCT, LFBP, LFAIN exist on 4.4 only).
 REALTIME_MOTOR_PARAMETERS = frozenset(
     {"LCV", "LCVC", "LCPG", "LFV", "LFVC", "LFS", "LFAP", "LFDP", "LFDPC", "LCT", "LFBP", "LFAIN"}
@@ -134,11 +128,11 @@ def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[i
         if not motors:
             raise ValueError(f"invalid motor set {motors!r}: empty; use e.g. '1', 'G', 'GS', '124' or None for the EN motors")
         for char in motors.upper():
-            if char not in MOTOR_PREFIX_CHARS:
+            if char not in MOTOR_PREFIXES:
                 raise ValueError(
                     f"invalid motor set {motors!r}: {char!r} is not one of 1 2 3 4 G S (manual Table 2)"
                 )
-            selected.update(MOTOR_PREFIX_CHARS[char])
+            selected.update(MOTOR_PREFIXES[char])
     else:
         try:
             items = (motors,) if isinstance(motors, int) else tuple(motors)
@@ -146,7 +140,7 @@ def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[i
             raise ValueError(f"invalid motor set {motors!r}: give a prefix such as 'G', a motor number or "
                              "motor numbers") from None
         for item in items:
-            if isinstance(item, bool) or not isinstance(item, int) or item not in (1, 2, 3, 4):
+            if isinstance(item, bool) or not isinstance(item, int) or item not in MOTORS:
                 raise ValueError(f"invalid motor set {motors!r}: {item!r} is not a motor number 1..4")
             selected.add(item)
         if not selected:
@@ -156,10 +150,10 @@ def parse_motors(motors: str | int | Iterable[int] | None) -> tuple[str, tuple[i
 
 
 def _check_baud_rate(name: str, rate) -> None:
-    """An int among VALID_BAUD_RATES (38400.0 would go out as "PSET BAUD 384.0", refused by the hand
+    """An int among BAUD_RATES (38400.0 would go out as "PSET BAUD 384.0", refused by the hand
     after the host has switched)."""
-    if isinstance(rate, bool) or not isinstance(rate, int) or rate not in VALID_BAUD_RATES:
-        raise ValueError(f"{name} must be one of {VALID_BAUD_RATES} (manual §5.4.1 BAUD), got {rate!r}")
+    if isinstance(rate, bool) or not isinstance(rate, int) or rate not in BAUD_RATES:
+        raise ValueError(f"{name} must be one of {BAUD_RATES} (manual §5.4.1 BAUD), got {rate!r}")
 
 
 def _check_int(name: str, value, low: int, high: int) -> int:
@@ -248,7 +242,7 @@ class BarrettHand:
         motion_timeout: float = DEFAULT_MOTION_TIMEOUT_S,
     ):
         _check_baud_rate("baudrate", baudrate)
-        if firmware not in (None, "4.3", "4.4"):
+        if firmware is not None and firmware not in FIRMWARE_PROFILES:
             raise ValueError(f"firmware must be '4.3', '4.4' or None (ask VERS), got {firmware!r}")
         for name, value in (("timeout", timeout), ("motion_timeout", motion_timeout)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:

@@ -79,11 +79,8 @@ from bh8_gym.motion_control import ACCEL_SCALE, HOLD, VELOCITY_SCALE, MotorChann
 from bh8_gym.nvstore import NVStore
 from bh8_gym.parameters import (
     BREAKAWAY_POSITION_MAX,
-    FIRMWARE_PROFILES,
     GLOBAL_TABLE,
     MOTOR_TABLE,
-    MOTORS,
-    SPREAD,
     coefficient,
     default_global_values,
     default_motor_values,
@@ -91,17 +88,15 @@ from bh8_gym.parameters import (
     listed,
     motor_parameters,
 )
+from bh8_gym.protocol import BITS_PER_BYTE, FIRMWARE_PROFILES, LINE_END, MOTOR_PREFIXES, MOTORS, PROMPT, SPREAD_MOTOR
 from bh8_gym.realtime_codec import HEADERS_WITH_DATA, HEADERS_WITH_FEEDBACK, LoopLayout, MotorFlags
 from bh8_gym.status import STATUS_DESCRIPTIONS, Status
 
 # SPEC.md §6 / Contract 2: firmware processing time per RealTime cycle (SPEC.md §8 open point; the
 # 68HC811 at 1.25 MHz (§9.1) needs about a millisecond to act on a block and fill a feedback block).
 REALTIME_PROCESSING_S = 1.0e-3
-BITS_PER_BYTE = 10  # 8N1: start, 8 data, stop (§9.1)
 VERSIONS = {"4.3": "4.34", "4.4": "4.40"}  # our choice of the exact 4.3x / 4.4x version strings
 BANNER_LINES = ("BarrettHand Firmware", "Version {version}")  # see module docstring
-PROMPT = b"=> "
-EOL = b"\n\r"
 MAX_LINE_LENGTH = 255  # our choice: longer lines fail with ERR 128
 # Our choice (the manual only says "no motion"): movement below this many counts during TSTOP ms
 # is a stall. It absorbs a fingertip creeping along a curved object under full force (up to about
@@ -140,7 +135,6 @@ _CTRL_C = 0x03
 _CR = 0x0D
 _LF = 0x0A
 _BACKSPACES = (0x08, 0x7F)
-_PREFIX_MOTORS = {"1": (1,), "2": (2,), "3": (3,), "4": (4,), "G": (1, 2, 3), "S": (4,)}
 
 # name: (description, advanced, takes a motor prefix) — §5.2.1-§5.2.5
 COMMANDS = {
@@ -540,7 +534,7 @@ class Firmware:
             elif byte == _CTRL_C:
                 self._line.clear()
                 self._line_overflow = False
-                self._output += EOL + PROMPT
+                self._output += LINE_END + PROMPT
             elif byte == _LF:
                 continue
             elif byte in _BACKSPACES:
@@ -556,12 +550,12 @@ class Firmware:
 
     def _reply(self, lines=(), error: int = 0) -> None:
         out = self._output
-        out += EOL
+        out += LINE_END
         if error:
-            out += b"ERR %d" % error + EOL
+            out += b"ERR %d" % error + LINE_END
         else:
             for line in lines:
-                out += line.encode("latin-1") + EOL
+                out += line.encode("latin-1") + LINE_END
         out += PROMPT
 
     # ------------------------------------------------------------------ supervisory commands
@@ -578,7 +572,7 @@ class Firmware:
             self._reply()
             return
         i = 0
-        while i < len(text) and text[i] in _PREFIX_MOTORS:
+        while i < len(text) and text[i] in MOTOR_PREFIXES:
             i += 1
         prefix = text[:i]
         tokens = [token.decode("latin-1") for token in line[i:].split()]
@@ -595,7 +589,7 @@ class Firmware:
             self._reply(error=Status.NO_PREFIX_ALLOWED)
             return
         if prefix:
-            motors = tuple(sorted({m for c in prefix for m in _PREFIX_MOTORS[c]}))
+            motors = tuple(sorted({m for c in prefix for m in MOTOR_PREFIXES[c]}))
         elif word in MOVEMENT_COMMANDS:  # §5.3.4 EN: "a motion command with no motor prefix"
             motors = tuple(m for m in MOTORS if self._motor_values[m]["EN"])
         else:  # §5.2: "By default, all four motors are affected"
@@ -727,7 +721,7 @@ class Firmware:
             if word == "HI":
                 channel.velocity(-v["IVEL"] / VELOCITY_SCALE, v["FPG"])
                 run = _MotorRun(m, _RUN_HI_SEEK, 0.0, position, t, -1.0)
-                impacts = v["IHIT"] if m != SPREAD else 0
+                impacts = v["IHIT"] if m != SPREAD_MOTOR else 0
                 run.impacts_left = min(max(impacts, 1), IHIT_MAX_IMPACTS) - 1
             elif word in ("TC", "TO"):
                 speed = v["MCV"] if word == "TC" else -v["MOV"]
@@ -768,7 +762,7 @@ class Firmware:
                     sg = int(strain[m - 1])
                     ended = (v["HSG"] < 255 and sg > v["HSG"]) or (v["LSG"] < 255 and sg < v["LSG"])
                 goal = False
-                if not ended and v["BS"] and run.kind <= _RUN_VELOCITY and m != SPREAD:
+                if not ended and v["BS"] and run.kind <= _RUN_VELOCITY and m != SPREAD_MOTOR:
                     ended = self._plant_breakaway(m) not in (None, breakaway_at_start[m])
                 if not ended and run.kind in _POSITION_RUNS:
                     ended = goal = (
@@ -786,7 +780,7 @@ class Firmware:
                     else:
                         # the stop reads -IOFF from now on (§5.3.4 IOFF), then home to 0
                         self._origin[m - 1] += position + v["IOFF"]
-                        if m != SPREAD:
+                        if m != SPREAD_MOTOR:
                             self.plant.back_off_stop(m, v["IOFF"])
                         run.restart(_RUN_HI_HOME, 0.0, -float(v["IOFF"]), t)
                         self._start_move(channel, v, t, -float(v["IOFF"]), 0.0)
@@ -1101,7 +1095,7 @@ class Firmware:
         if header == _CTRL_C:
             del data[0]
             self._leave_loop()
-            self._output += EOL + PROMPT
+            self._output += LINE_END + PROMPT
             return True
         if header not in b"CcAa":
             del data[0]
@@ -1203,7 +1197,7 @@ class Firmware:
 
     def _plant_breakaway(self, m: int) -> float | None:
         """The plant's last breakaway of finger m in plant counts (None: none; the spread has none)."""
-        if m == SPREAD:
+        if m == SPREAD_MOTOR:
             return None
         position = self.plant.breakaway_position(m)
         return None if position is None or isnan(position) else float(position)

@@ -18,10 +18,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-FIRMWARE_PROFILES = ("4.3", "4.4")
-MOTORS = (1, 2, 3, 4)  # F1, F2, F3, spread
-SPREAD = 4
-BAUD_VALUES = (6, 12, 24, 48, 96, 192, 384)  # §5.4.1: baud rate / 100
+from bh8_gym.protocol import BAUD_VALUES, FIRMWARE_PROFILES, MOTORS, SPREAD_MOTOR
+
 UINT32_MAX = 4_294_967_295  # "0 to 4 billion" counters (OD, UPSECS)
 COEFFICIENTS = ("LCVC", "LFVC", "LFDPC")  # Table 4 coefficients: 0 is scaled as 1 (SPEC.md §3)
 BREAKAWAY_POSITION_MAX = 20000  # BP "Values: 0 or 20000" (SPEC.md §3.1), i.e. 0 to 20000 counts
@@ -46,7 +44,7 @@ class Parameter:
 
     def default_for(self, motor: int) -> int | None:
         """The factory default for `motor` (1-3 fingers, 4 spread)."""
-        return self.spread_default if motor == SPREAD else self.finger_default
+        return self.spread_default if motor == SPREAD_MOTOR else self.finger_default
 
     def accepts(self, value: int) -> bool:
         """True when `value` is a valid setting (range, or the allowed set)."""

@@ -52,9 +52,8 @@ import pybullet as p
 
 from bh8_gym import hand_urdf
 from bh8_gym import kinematics as kin
+from bh8_gym.protocol import MOTORS
 
-MOTORS = (1, 2, 3, 4)
-SPREAD_MOTOR = 4
 NUM_JOINTS = 8  # URDF order: F1 spread/inner/outer, F2 spread/inner/outer, F3 inner/outer
 INNER_INDEX = (1, 4, 6)  # positions of the finger joints in the 8-joint arrays
 OUTER_INDEX = (2, 5, 7)

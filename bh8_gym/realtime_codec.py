@@ -18,6 +18,8 @@ import struct
 from dataclasses import dataclass, fields
 from typing import Mapping, Sequence
 
+from bh8_gym.protocol import FIRMWARE_PROFILES, MOTORS
+
 HEADER_CONTROL_FEEDBACK = b"C"  # control data follows; reply with a feedback block
 HEADER_CONTROL_ACK = b"c"  # control data follows; reply "*"
 HEADER_FEEDBACK = b"A"  # no control data; reply with a feedback block
@@ -27,9 +29,6 @@ HEADERS_WITH_DATA = frozenset(b"Cc")
 HEADERS_WITH_FEEDBACK = frozenset(b"CA")
 VALID_HEADERS = frozenset(b"CcAa\x03")
 ACK = b"*"
-
-FIRMWARE_PROFILES = ("4.3", "4.4")
-LOOP_MOTORS = (1, 2, 3, 4)
 
 # (struct code, minimum, maximum) of every datum.
 _DATUM = {
@@ -73,13 +72,13 @@ class LoopLayout:
 
     def __init__(
         self,
-        motors: Sequence[int] = LOOP_MOTORS,
+        motors: Sequence[int] = MOTORS,
         flags: MotorFlags | Mapping[int, MotorFlags] = MotorFlags(),
         lft: bool = False,
         firmware: str = "4.3",
     ):
         motors = tuple(sorted(set(int(m) for m in motors)))
-        if not motors or any(m not in LOOP_MOTORS for m in motors):
+        if not motors or any(m not in MOTORS for m in motors):
             raise ValueError(f"LOOP motors must be a non-empty subset of 1..4, got {motors!r}")
         if firmware not in FIRMWARE_PROFILES:
             raise ValueError(f"firmware profile must be one of {FIRMWARE_PROFILES}, got {firmware!r}")

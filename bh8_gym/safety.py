@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Iterable
 
-from bh8_gym.parameters import SPREAD  # the spread has no strain gauge (§5.3.2: its LFS reads 255)
+from bh8_gym.protocol import SPREAD_MOTOR  # the spread has no strain gauge (§5.3.2: its LFS reads 255)
 
 # LCV is a signed byte: |LCV| 127 is no clamp at all (-128..127).
 NO_VELOCITY_CLAMP = 127
@@ -51,7 +51,7 @@ class SafetyEnvelope:
     def strain_violation(self, strains: Iterable[tuple[int, int | None]]) -> str | None:
         """Why the run must stop, for (motor, strain) readings (None: not reported), or None."""
         for motor, strain in strains:
-            if motor != SPREAD and strain is not None and strain > self.max_strain:
+            if motor != SPREAD_MOTOR and strain is not None and strain > self.max_strain:
                 return f"motor {motor} strain {strain} above the limit {self.max_strain}"
         return None
 

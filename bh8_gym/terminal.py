@@ -26,13 +26,12 @@ from pathlib import Path
 from bh8_gym.client import (
     DEFAULT_MOTION_TIMEOUT_S,
     DEFAULT_TIMEOUT_S,
-    VALID_BAUD_RATES,
     BarrettHand,
     HandConnectionError,
 )
+from bh8_gym.protocol import BAUD_RATES, PROMPT
 from bh8_gym.status import BH8Error, ProtocolError, decode_status, parse_status
 
-PROMPT = "=> "
 HISTORY_LENGTH = 1000
 DEFAULT_HISTORY = Path("~/.bh8_history")
 _ERR_LINE = re.compile(r"^\s*ERR\s*(\d+)\s*$")
@@ -67,8 +66,8 @@ def execute(hand: BarrettHand, line: str) -> list[str]:
             rate = int(baud.group(1)) * 100
         except ValueError:
             rate = None
-        if rate not in VALID_BAUD_RATES:
-            raise LocalRefusal(f"PSET BAUD takes one of {[r // 100 for r in VALID_BAUD_RATES]}, got {baud.group(1)!r}")
+        if rate not in BAUD_RATES:
+            raise LocalRefusal(f"PSET BAUD takes one of {[r // 100 for r in BAUD_RATES]}, got {baud.group(1)!r}")
         hand.set_baud(rate)
         return []
     if re.match(r"^\s*PSET\b.*\bBAUD\b", line, re.IGNORECASE):
@@ -83,7 +82,7 @@ def run_script(hand: BarrettHand, lines, out, err) -> int:
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        print(f"{PROMPT}{line}", file=out)
+        print(f"{PROMPT.decode()}{line}", file=out)
         try:
             reply = execute(hand, line)
         except LocalRefusal as refusal:
@@ -131,7 +130,7 @@ def run_interactive(hand: BarrettHand, history: Path) -> int:
     try:
         while True:
             try:
-                line = input(PROMPT)
+                line = input(PROMPT.decode())
             except EOFError:
                 print()
                 return 0
@@ -200,7 +199,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", required=True,
                         help="serial port or pyserial URL: /dev/ttyUSB0, COM3, socket://host:port, bh8sim://?seed=0, "
                              "or the device `bh8 serve` printed")
-    parser.add_argument("--baud", type=int, default=9600, choices=VALID_BAUD_RATES,
+    parser.add_argument("--baud", type=int, default=9600, choices=BAUD_RATES,
                         help="host baud rate; must match the hand's BAUD (default: %(default)s, the factory setting)")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
                         help=f"seconds to wait for a non-motion reply (default {DEFAULT_TIMEOUT_S})")

@@ -70,8 +70,8 @@ from pathlib import Path
 from typing import Sequence
 
 from bh8_gym.cli import handling_signals, integer_argument, json_object_argument
+from bh8_gym.protocol import BITS_PER_BYTE, FIRMWARE_PROFILES
 
-FIRMWARE_PROFILES = ("4.3", "4.4")
 
 # Paced mode: the longest wait between firmware advances while a command or LOOP is active. One
 # physics step of the plant's default dt (Contract 1), so paced output is at most a step late.
@@ -427,8 +427,6 @@ class PtyServer:
     def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None,
                  counter_save_interval: float = COUNTER_SAVE_INTERVAL_S,
                  full_speed_limit: float = UNPACED_FULL_SPEED_S):
-        from bh8_gym.firmware import BITS_PER_BYTE
-
         self.firmware = firmware
         self.realtime = bool(realtime)
         self.counter_save_interval = float(counter_save_interval)

@@ -49,17 +49,15 @@ from bh8_gym.envs.randomization import (
     sample_plant_parameters,
     sample_processing_time,
 )
+from bh8_gym.protocol import BAUD_RATES, BITS_PER_BYTE, SPREAD_MOTOR
 from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
 from bh8_gym.safety import SafetyEnvelope
 
-# §5.4.1 BAUD values × 100 (bits per second).
-SUPPORTED_BAUDS = (600, 1200, 2400, 4800, 9600, 19200, 38400)
 FULL_RANGE_COUNTS = {1: 17_500.0, 2: 17_500.0, 3: 17_500.0, 4: 3_150.0}  # SPEC.md §1, BH8-262
 VELOCITY_FULL_SCALE = 16.0  # counts per sample: no-load motor speed ≈ 14 counts per 256 µs sample
 STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
-BITS_PER_BYTE = 10  # 8N1 (§9.1)
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
 # PyBullet never frees a collision shape (it refuses to remove one a body has used), and a random
@@ -107,10 +105,8 @@ class BH8LoopEnv(gym.Env):
         render_size: tuple[int, int],
         safety: SafetyEnvelope | dict | None = None,
     ):
-        from bh8_gym.plant import SPREAD_MOTOR  # the plant (and PyBullet) load with the first env
-
-        if baud not in SUPPORTED_BAUDS:
-            raise ValueError(f"baud must be one of {SUPPORTED_BAUDS} (manual §5.4.1 BAUD), got {baud!r}")
+        if baud not in BAUD_RATES:
+            raise ValueError(f"baud must be one of {BAUD_RATES} (manual §5.4.1 BAUD), got {baud!r}")
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
         for name, value in (("lcvc", lcvc), ("lfvc", lfvc), ("lfdpc", lfdpc)):
