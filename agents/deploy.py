@@ -1,7 +1,9 @@
 """`bh8 deploy --port PORT --policy FILE`: run a policy closed-loop on a hand over a serial port.
 
 The sequence is what the environment does to its simulated firmware, sent through
-`bh8_gym.client.BarrettHand` to whatever is on the port (a real BH8-262, `bh8 serve`, bh8sim://):
+`bh8_gym.client.BarrettHand` to whatever is on the port (a real BH8-262, `bh8 serve`, bh8sim://),
+from the same `LoopInterface` (`envs.interfaces.interface_for` builds it from the policy's env id
+and keyword arguments without the simulator: deploy never loads PyBullet):
 
 1. connect at `--baud` (the hand's current rate, 9600 after power-up), switch to the env's rate
    with PSET BAUD (client.set_baud), then send the env's supervisory setup script (HI, the LOOP
@@ -10,8 +12,8 @@ The sequence is what the environment does to its simulated firmware, sent throug
    switches the rate back;
 2. every cycle: policy(observation) -> floats in [-1, 1] -> LOOP bytes with the env's own mapping
    (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
-   block is decoded by the client's LoopLayout and turned into the next observation by the env's
-   observation builder (the same code the policy was trained on);
+   block is decoded by the client's LoopLayout and turned into the next observation by the
+   interface's observation builder (the same code the policy was trained on);
 3. stop on the cycle budget, Ctrl-C, SIGTERM or SIGHUP (at the next cycle boundary: a block is
    never cut in half), a strain above `--max-strain` or a temperature above
    `--max-temperature` (read with PGET TEMP before LOOP, and every cycle if the env's LOOP has
@@ -47,7 +49,10 @@ import numpy as np
 
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
+from bh8_gym.client import BarrettHand
+from bh8_gym.envs.interfaces import interface_for
 from bh8_gym.envs.wrappers import unit_to_bytes
+from bh8_gym.loop_interface import LoopInterface
 from bh8_gym.protocol import BAUD_RATES
 from bh8_gym.safety import NO_VELOCITY_CLAMP, SafetyEnvelope
 from bh8_gym.status import BH8Error
@@ -55,7 +60,7 @@ from bh8_gym.status import BH8Error
 EXIT_ACTIONS = ("GT", "T", "none")
 # The host clock the observation's elapsed time uses: wall seconds since the first block (a real
 # hand and arm), or the env's own clock summed cycle by cycle with the nominal processing time
-# (`BH8LoopEnv.next_elapsed`; an unpaced simulator: bit-identical to the env's without latency
+# (`LoopInterface.next_elapsed`; an unpaced simulator: bit-identical to the env's without latency
 # randomisation, e.g. `bh8 serve --env ID --seed N --env-kwargs '{"randomize": false}'`).
 CLOCKS = ("wall", "cycles")
 # The default limits are the policy's env's safety envelope (bh8_gym.safety, the env trains inside
@@ -75,14 +80,12 @@ class PolicyFailure(Exception):
     """The policy raised instead of giving an action (the message names the error)."""
 
 
-def check_deployable(policy, env) -> None:
+def check_deployable(policy, interface: LoopInterface) -> None:
     """Refuse privileged policies and policies whose observation size is not what a host builds."""
-    base = env.unwrapped
-    if policy.privileged or base.privileged:
+    if policy.privileged or interface.privileged:
         raise DeployError("this policy was trained with privileged (simulation-only) observations; "
                           "a real hand cannot provide them - retrain with privileged=False")
-    host_size = base.observation_from_feedback([0] * len(base.layout.feedback_fields),
-                                               [0] * len(base.layout.control_fields), 0.0).size
+    host_size = interface.host_observation_size
     if policy.observation_dim != host_size:
         raise DeployError(f"the policy expects {policy.observation_dim} observations but a host builds "
                           f"{host_size} from a feedback block")
@@ -91,18 +94,17 @@ def check_deployable(policy, env) -> None:
 class Deployment:
     """A policy driving a `BarrettHand` in LOOP, cycle by cycle, with limits and a block log."""
 
-    def __init__(self, hand, policy, env, log_file, max_velocity: int | None = None,
+    def __init__(self, hand, policy, interface: LoopInterface, log_file, max_velocity: int | None = None,
                  max_strain: int | None = None, max_temperature: float | None = None,
                  on_exit: str = "GT", clock: str = "wall"):
-        """Limits None: the env's safety envelope (`env.unwrapped.safety`), which it trained in."""
+        """Limits None: the env's safety envelope (`interface.safety`), which it trained in."""
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
         if on_exit not in EXIT_ACTIONS:
             raise ValueError(f"on_exit must be one of {EXIT_ACTIONS}, got {on_exit!r}")
-        check_deployable(policy, env)
-        self.hand, self.policy, self.env = hand, policy, env
-        self.base = env.unwrapped
-        trained = self.base.safety
+        check_deployable(policy, interface)
+        self.hand, self.policy, self.interface = hand, policy, interface
+        trained = interface.safety
         try:
             self.envelope = SafetyEnvelope(
                 max_strain=trained.max_strain if max_strain is None else max_strain,
@@ -114,10 +116,10 @@ class Deployment:
         self.max_strain, self.max_temperature = self.envelope.max_strain, self.envelope.max_temperature
         self.log_file = log_file
         self.on_exit = on_exit
-        space = self.base.action_space
+        space = interface.action_space
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
-        fields = self.base.layout.control_fields
+        fields = interface.layout.control_fields
         is_velocity = np.array([name == "LCV" for _, name in fields])
         floor = -max_velocity if max_velocity < NO_VELOCITY_CLAMP else self._low
         self._clamp_low = np.where(is_velocity, np.maximum(self._low, floor), self._low).astype(np.int64)
@@ -141,13 +143,11 @@ class Deployment:
 
     def setup(self, baud_rate: int) -> None:
         """Switch the rate, run the env's setup script, enter LOOP; check the layout agrees."""
-        hand = self.hand
+        hand, interface = self.hand, self.interface
         if hand.baudrate != baud_rate:
-            hand.set_baud(baud_rate)
+            hand.set_baud(baud_rate)  # the interface's baud_command, switching the host's rate too
             self._log({"event": "baud", "rate": baud_rate, "t": time.monotonic()})
-        for line in self.base.setup_commands:
-            if line.upper().startswith("PSET BAUD"):
-                continue  # done above by client.set_baud, which must switch the host's rate too
+        for line in interface.setup_commands:
             hand.command(line)
             self._log({"event": "command", "line": line, "t": time.monotonic()})
         # The shipped envs' feedback has no LFT: the limit is checked here, before LOOP, and every
@@ -157,14 +157,14 @@ class Deployment:
         stop = self.envelope.temperature_violation(temperature, " before LOOP")
         if stop is not None:
             raise SafetyStop(stop)
-        loop_line = self.base.loop_command
+        loop_line = interface.loop_command
         self.layout = hand.start_loop(loop_line[: -len("LOOP")] or "GS")
         self._log({"event": "loop", "line": loop_line, "layout": repr(self.layout), "t": time.monotonic()})
-        if not self.layout.same_blocks(self.base.layout):
+        if not self.layout.same_blocks(interface.layout):
             hand.stop_loop()
             raise DeployError(f"the hand's LOOP blocks are not the env's: the hand's feedback is "
                               f"{self.layout.feedback_fields} and control {self.layout.control_fields}, "
-                              f"the env's {self.base.layout.feedback_fields} and {self.base.layout.control_fields}")
+                              f"the env's {interface.layout.feedback_fields} and {interface.layout.control_fields}")
 
     def _exchange(self, values, header: bytes = b"C"):
         feedback = self.hand.update_raw(values, header)
@@ -188,7 +188,7 @@ class Deployment:
             raise ValueError(f"cycles must be positive, got {cycles!r}")
         reason = "done"
         previous = np.zeros(len(self._stop_values), dtype=np.int64)
-        base, hand, on_cycles = self.base, self.hand, self.clock == "cycles"
+        base, hand, on_cycles = self.interface, self.hand, self.clock == "cycles"
         processing_time = base.nominal_processing_time
         with self._stop_on_signals():
             try:
@@ -402,37 +402,29 @@ def preferred_policy_file(path: Path, trust: bool) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.client import BarrettHand
-
     try:
         policy = load_policy(preferred_policy_file(args.policy, args.trust_file), trust=args.trust_file)
         env_id = policy.metadata.get("env_id")
         if env_id is None:
             raise DeployError(f"{str(args.policy)!r} does not name its environment; export it with `bh8 export`")
-        env = make_env(env_id, policy.metadata.get("env_kwargs", {}))
-        try:
-            check_deployable(policy, env)
-        except DeployError:
-            env.close()
-            raise
+        interface = interface_for(env_id, policy.metadata.get("env_kwargs", {}))
+        check_deployable(policy, interface)
     except (PolicyFileError, FileNotFoundError, DeployError, ValueError) as exc:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
         return 2
     try:
         args.log.open("a").close()  # writable? (without truncating: the old log survives a bad port)
     except OSError as exc:
-        env.close()
         print(f"bh8 deploy: cannot write the log: {exc}", file=sys.stderr)
         return 2
     try:
-        cycles = env.unwrapped.nominal_episode_steps() if args.cycles is None else args.cycles
+        cycles = interface.nominal_episode_steps() if args.cycles is None else args.cycles
         with BarrettHand(args.port, baudrate=args.baud) as hand, args.log.open("w") as log_file:
-            deployment = Deployment(hand, policy, env, log_file, max_velocity=args.max_velocity,
+            deployment = Deployment(hand, policy, interface, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,
                                     on_exit=args.on_exit, clock=args.clock)
             try:
-                deployment.setup(env.unwrapped.baud)
+                deployment.setup(interface.baud)
             except SafetyStop as stop:
                 deployment.abandon_setup(f"safety stop: {stop}")
                 print(f"bh8 deploy: safety stop before LOOP: {stop}; log in {args.log}", file=sys.stderr)
@@ -449,8 +441,6 @@ def run(args: argparse.Namespace) -> int:
     except (DeployError, BH8Error, ValueError) as exc:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
         return 1
-    finally:
-        env.close()
     failed = (deployment.hand_error is not None or deployment.safe_exit_error is not None
               or deployment.policy_error is not None)
     print(f"bh8 deploy: {deployment.policy_cycles} policy cycles, stopped: {reason}; log in {args.log}",
@@ -460,8 +450,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {error_text(deployment.safe_exit_error)}",
               file=sys.stderr)
     if deployment.baud_error is not None:
-        print(f"bh8 deploy: the hand stays at {env.unwrapped.baud} baud (switching back to {args.baud} failed: "
-              f"{deployment.baud_error}); connect with --baud {env.unwrapped.baud}", file=sys.stderr)
+        print(f"bh8 deploy: the hand stays at {interface.baud} baud (switching back to {args.baud} failed: "
+              f"{deployment.baud_error}); connect with --baud {interface.baud}", file=sys.stderr)
     if deployment.hand_error is not None or deployment.safe_exit_error is not None:
         return 1
     if deployment.policy_error is not None:

@@ -14,9 +14,9 @@ import signal
 import sys
 
 SUBCOMMANDS = {
-    "serve": ("bh8_gym.virtual_serial", "serve the simulated hand's firmware on a pseudo-terminal"),
-    "term": ("bh8_gym.terminal", "interactive GCL terminal for a real or simulated hand"),
-    "render": ("bh8_gym.rendering", "render the simulated hand to a PNG"),
+    "serve": ("bh8_gym.commands.serve", "serve the simulated hand's firmware on a pseudo-terminal"),
+    "term": ("bh8_gym.commands.term", "interactive GCL terminal for a real or simulated hand"),
+    "render": ("bh8_gym.commands.render", "render the simulated hand to a PNG"),
     "train": ("bh8_gym.agents.train", "train a grasp policy (PPO or SAC)"),
     "eval": ("bh8_gym.agents.evaluate", "evaluate a policy or a scripted baseline"),
     "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),

@@ -88,13 +88,20 @@ from bh8_gym.parameters import (
     listed,
     motor_parameters,
 )
-from bh8_gym.protocol import BITS_PER_BYTE, FIRMWARE_PROFILES, LINE_END, MOTOR_PREFIXES, MOTORS, PROMPT, SPREAD_MOTOR
+from bh8_gym.plant import HandPlant
+from bh8_gym.protocol import (
+    FIRMWARE_PROFILES,
+    LINE_END,
+    MOTOR_PREFIXES,
+    MOTORS,
+    PROMPT,
+    REALTIME_PROCESSING_S,
+    SPREAD_MOTOR,
+    seconds_per_byte,
+)
 from bh8_gym.realtime_codec import HEADERS_WITH_DATA, HEADERS_WITH_FEEDBACK, LoopLayout, MotorFlags
 from bh8_gym.status import STATUS_DESCRIPTIONS, Status
 
-# SPEC.md §6 / Contract 2: firmware processing time per RealTime cycle (SPEC.md §8 open point; the
-# 68HC811 at 1.25 MHz (§9.1) needs about a millisecond to act on a block and fill a feedback block).
-REALTIME_PROCESSING_S = 1.0e-3
 VERSIONS = {"4.3": "4.34", "4.4": "4.40"}  # our choice of the exact 4.3x / 4.4x version strings
 BANNER_LINES = ("BarrettHand Firmware", "Version {version}")  # see module docstring
 MAX_LINE_LENGTH = 255  # our choice: longer lines fail with ERR 128
@@ -257,8 +264,6 @@ class Firmware:
         self.processing_time = processing_time
         self._owns_plant = plant is None
         if plant is None:
-            from bh8_gym.plant import HandPlant
-
             plant = HandPlant(seed=seed)
         self.plant = plant
         self.profile = profile
@@ -1072,7 +1077,7 @@ class Firmware:
             self._status[m] = 0
         self._loop_velocity_scale = {m: coefficient(values[m]["LCVC"]) / VELOCITY_SCALE for m in layout.motors}
         # Fixed while in LOOP (parameters change only in supervisory mode): looked up once, not per cycle.
-        self._seconds_per_byte = BITS_PER_BYTE / self.baud
+        self._seconds_per_byte = seconds_per_byte(self.baud)
         self._feedback_plan = [
             (name, m, self._channels[m].period, values[m]["SGFLIP"], coefficient(values[m]["LFVC"]),
              coefficient(values[m]["LFDPC"])) if m is not None else (name, m, 0.0, 0, 1, 1)  # LFT: no motor

@@ -39,8 +39,6 @@ Drive-train model (one finger; docs/modelling.md tells the why and the numbers):
 from __future__ import annotations
 
 import math
-import os
-import sys
 from bisect import bisect_left
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -53,6 +51,8 @@ import pybullet as p
 from bh8_gym import hand_urdf
 from bh8_gym import kinematics as kin
 from bh8_gym.protocol import MOTORS
+from bh8_gym.rendering import display_available
+from bh8_gym.settings import dataclass_from, matches_annotation
 
 NUM_JOINTS = 8  # URDF order: F1 spread/inner/outer, F2 spread/inner/outer, F3 inner/outer
 INNER_INDEX = (1, 4, 6)  # positions of the finger joints in the 8-joint arrays
@@ -97,14 +97,6 @@ class PlantError(ValueError):
 
 class DisplayUnavailableError(RuntimeError):
     """gui=True (render_mode="human", `bh8 serve --gui`) on a machine without a display."""
-
-
-def display_available() -> bool:
-    """False on Linux and the BSDs when DISPLAY is not set. PyBullet's GUI then ends the whole
-    process (exit status 1, no exception), so it is checked before connecting."""
-    if sys.platform.startswith("linux") or "bsd" in sys.platform:
-        return bool(os.environ.get("DISPLAY"))
-    return True
 
 
 @dataclass
@@ -226,14 +218,14 @@ class PlantParameters:
     def from_overrides(cls, overrides) -> "PlantParameters":
         """The defaults with some fields replaced: `overrides` is a PlantParameters (returned as it
         is) or a mapping of field names to values, as a TOML config or JSON env kwargs give them."""
-        params = dataclass_from(cls, overrides, "plant parameters")
+        params = dataclass_from(cls, overrides, "plant parameters", error=PlantError)
         params.validate()
         return params
 
     def validate(self) -> None:
         for item in fields(self):
             value = getattr(self, item.name)
-            if not _matches(item.type, value):
+            if not matches_annotation(item.type, value):
                 raise PlantError(f"{item.name} must be {item.type}, got {value!r}")
         if not 0.0 < self.time_step <= 0.002:
             raise PlantError(f"time_step must be in (0, 0.002] s, got {self.time_step!r}")
@@ -245,46 +237,6 @@ class PlantParameters:
             raise PlantError(f"preload_release_counts must be > 0, got {self.preload_release_counts!r}")
         if not self.worm_slack >= 0.0:
             raise PlantError(f"worm_slack must be >= 0, got {self.worm_slack!r}")
-
-
-def dataclass_from(cls, value, keyword: str):
-    """`value` as a `cls` settings dataclass (fields of float, int, bool, fixed-length tuples): an
-    instance as it is, None for the defaults, or a mapping of some field names to values (what a
-    TOML config or JSON env kwargs can carry). An unknown name or a value of the wrong kind is a
-    PlantError naming it, at once rather than at the first step."""
-    if value is None:
-        return cls()
-    if isinstance(value, cls):
-        return value
-    if not hasattr(value, "keys"):
-        raise PlantError(f"{keyword} must be {cls.__name__} or a dict of its fields, got {value!r}")
-    kinds = {item.name: item.type for item in fields(cls)}
-    unknown = sorted(str(name) for name in value if name not in kinds)
-    if unknown:
-        raise PlantError(f"{cls.__name__} ({keyword}) has no field {', '.join(map(repr, unknown))}")
-    values = {name: tuple(item) if isinstance(item, list) else item for name, item in value.items()}
-    for name, item in values.items():
-        if not _matches(str(kinds[name]), item):
-            raise PlantError(f"{keyword}: {name} must be {kinds[name]}, got {item!r}")
-    return cls(**values)
-
-
-def _matches(annotation: str, value) -> bool:
-    """Whether `value` fits a PlantParameters annotation: float (finite; an int will do), int, bool,
-    tuple[T, ...] of a fixed length, each optionally "| None"."""
-    if annotation.endswith(" | None"):
-        return value is None or _matches(annotation[: -len(" | None")], value)
-    if annotation.startswith("tuple["):
-        kinds = [kind.strip() for kind in annotation[len("tuple["):-1].split(",")]
-        return (isinstance(value, tuple) and len(value) == len(kinds)
-                and all(_matches(kind, item) for kind, item in zip(kinds, value)))
-    if annotation == "bool":
-        return isinstance(value, bool)
-    if isinstance(value, bool):
-        return False
-    if annotation == "int":
-        return isinstance(value, (int, np.integer))
-    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
 
 
 @dataclass(slots=True)  # slots: the step reads these fields many times per step
@@ -1184,6 +1136,26 @@ class HandPlant:
             return list(p.getContactPoints(bodyA=body_a, physicsClientId=self._client))
         return list(p.getContactPoints(bodyA=body_a, bodyB=body_b, physicsClientId=self._client))
 
+    def link_index(self, name: str) -> int:
+        """PyBullet's index of the hand's link `name` (hand_urdf's names; the palm is -1)."""
+        return self._link_index_by_name[name]
+
+    def contacts_by_link(self, body: int) -> list[int]:
+        """The hand's link index of each contact point between the hand and `body`, from the last step."""
+        return [contact[3] for contact in p.getContactPoints(self.hand_id, body, physicsClientId=self._client)]
+
+    def link_positions(self, links: list[int]) -> list[tuple[float, float, float]]:
+        """World positions of the hand's link frames `links` as the last step left them."""
+        return [state[4] for state in p.getLinkStates(self.hand_id, links, physicsClientId=self._client)]
+
+    def body_position(self, body: int) -> tuple[float, float, float]:
+        """World position of `body`'s base."""
+        return p.getBasePositionAndOrientation(body, physicsClientId=self._client)[0]
+
+    def body_bounds(self, body: int) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(lowest, highest) corner of `body`'s base's axis-aligned bounding box."""
+        return p.getAABB(body, -1, physicsClientId=self._client)
+
     # ---------------------------------------------------------------- state
     def save_state(self) -> int:
         """Snapshot PyBullet and the plant's own state; returns an id for `restore_state`.
@@ -1234,13 +1206,7 @@ class HandPlant:
             raise PlantError(f"no saved plant state with id {state_id!r}")
         p.removeState(state_id, physicsClientId=self._client)
 
-    # ---------------------------------------------------------------- rendering and teardown
-    def render(self, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
-        """An RGB frame (H, W, 3) uint8 from TinyRenderer (headless); see bh8_gym.rendering.render_frame."""
-        from bh8_gym.rendering import render_frame
-
-        return render_frame(self, width, height, camera)
-
+    # ---------------------------------------------------------------- teardown
     def close(self) -> None:
         if self._client is not None and self._client >= 0:
             try:

@@ -18,6 +18,13 @@ FIRMWARE_PROFILES = ("4.3", "4.4")  # 4.3x and the 4.4 additions (SPEC.md §7)
 BAUD_RATES = (600, 1200, 2400, 4800, 9600, 19200, 38400)
 BAUD_VALUES = tuple(rate // 100 for rate in BAUD_RATES)  # 6 12 24 48 96 192 384
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit (§9.1)
-
+# SPEC.md §6 / Contract 2: the firmware's processing time per RealTime cycle (SPEC.md §8 open point;
+# the 68HC811 at 1.25 MHz (§9.1) needs about a millisecond to act on a block and fill a feedback block).
+REALTIME_PROCESSING_S = 1.0e-3
 PROMPT = b"=> "  # ends every supervisory reply (SPEC.md §2)
 LINE_END = b"\n\r"  # the firmware ends its lines LF CR
+
+
+def seconds_per_byte(baud: int) -> float:
+    """The time one byte takes on the line at `baud` bits per second (SPEC.md §6 charges it)."""
+    return BITS_PER_BYTE / baud

@@ -1,12 +1,12 @@
-"""Headless rendering of the simulated hand: TinyRenderer frames, PNG, GIF/MP4, and `bh8 render`.
+"""Headless rendering of the simulated hand: TinyRenderer frames, PNG, GIF/MP4, and the display probe.
 
 TinyRenderer (PyBullet's software renderer) needs no display or GPU, so frames render the same on
 CI, in subprocess vector environments and on a laptop.
 """
 from __future__ import annotations
 
-import argparse
 import math
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pybullet as p
 
-from bh8_gym.cli import integer_argument
 
 
 @dataclass(frozen=True)
@@ -32,7 +31,7 @@ class Camera:
 DEFAULT_CAMERA = Camera()
 
 
-def _camera_for(plant, camera) -> Camera:
+def camera_for(plant, camera) -> Camera:
     if camera is None:
         # Frame the hand: look at a point between the wrist and the fingers.
         position, orientation = plant.wrist_pose()
@@ -55,7 +54,7 @@ def check_image_size(width, height) -> None:
 def render_frame(plant, width: int = 640, height: int = 480, camera=None) -> np.ndarray:
     """An RGB image (height, width, 3) uint8 of the plant's world, rendered headless (TinyRenderer)."""
     check_image_size(width, height)
-    cam = _camera_for(plant, camera)
+    cam = camera_for(plant, camera)
     view = p.computeViewMatrixFromYawPitchRoll(cam.target, cam.distance, cam.yaw, cam.pitch, 0.0, 2, physicsClientId=plant.client)
     projection = p.computeProjectionMatrixFOV(cam.fov, width / height, 0.01, 5.0, physicsClientId=plant.client)
     _, _, rgba, _, _ = p.getCameraImage(
@@ -75,7 +74,7 @@ def collision_frame(plant, width: int = 640, height: int = 480, camera=None) -> 
     """Like `render_frame`, but of the hand's collision shapes (what PyBullet computes contacts with),
     each drawn in its own colour, posed as the hand is now; the table and objects are left out."""
     check_image_size(width, height)
-    cam = _camera_for(plant, camera)
+    cam = camera_for(plant, camera)
     client, hand = plant.client, plant.hand_id
     scratch = p.connect(p.DIRECT)
     try:
@@ -176,92 +175,9 @@ def write_animation(frames, path, fps: float = 20.0) -> Path:
     return path
 
 
-def close_hand(plant, seconds: float = 1.5, velocity: float = 24_414.0, torque_fraction: float = 1.0) -> None:
-    """Close the three fingers like a C at MCV 100 (App. A speed) for `seconds`, then leave them held."""
-    for motor in (1, 2, 3):
-        plant.set_drive(motor, velocity, torque_fraction)
-    for _ in range(int(round(seconds / plant.dt))):
-        plant.step()
-    for motor in (1, 2, 3):
-        plant.set_drive_off(motor)
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--output", "-o", type=Path, default=Path("hand.png"),
-                        help="PNG file to write (default: %(default)s)")
-    parser.add_argument("--width", type=int, default=800, help="image width, pixels (default: %(default)s)")
-    parser.add_argument("--height", type=int, default=600, help="image height, pixels (default: %(default)s)")
-    parser.add_argument("--closed", action="store_true",
-                        help="close the fingers (around the objects) first (default: open)")
-    parser.add_argument("--spread", type=float, default=0.0, help="spread angle, degrees (0-180; default: %(default)s)")
-    parser.add_argument(
-        "--object", action="append", default=[], metavar="SPEC",
-        help="add an object, e.g. box:0.05x0.05x0.08@0,0,0.04 or sphere:0.035 or model.urdf:1.5 (repeatable; default: none)",
-    )
-    parser.add_argument("--wrist-height", type=float, default=None,
-                        help="wrist height above the table, m (palm down; default: 0.3, or 0.2 with --object)")
-    parser.add_argument("--palm-up", action="store_true", help="turn the hand palm up (default: palm down)")
-    parser.add_argument("--yaw", type=float, default=DEFAULT_CAMERA.yaw,
-                        help="camera yaw, degrees (default: %(default)s)")
-    parser.add_argument("--pitch", type=float, default=DEFAULT_CAMERA.pitch,
-                        help="camera pitch, degrees (default: %(default)s)")
-    parser.add_argument("--distance", type=float, default=DEFAULT_CAMERA.distance,
-                        help="camera distance from its target, m (default: %(default)s)")
-    parser.add_argument("--seed", type=integer_argument(0), default=0,
-                        help="seed of the plant's randomised constants (default: %(default)s)")
-    parser.add_argument("--shapes", choices=("visual", "collision", "both"), default="visual",
-                        help="draw the hand's visual shapes, its collision shapes (one colour per shape, "
-                             "objects left out), or both side by side (default: %(default)s)")
-
-
-def run(args) -> int:
-    from bh8_gym.plant import HandPlant, PlantError, PlantParameters
-
-    params = PlantParameters()
-    if args.palm_up:
-        params.wrist_orientation = (0.0, 0.0, 0.0, 1.0)
-    if args.wrist_height is not None:
-        params.wrist_position = (0.0, 0.0, float(args.wrist_height))
-    elif args.object:
-        params.wrist_position = (0.0, 0.0, 0.20)  # palm a few cm above a table-top object
-    problem = None
-    if not 0.0 <= args.spread <= 180.0:
-        problem = f"--spread must be 0..180 degrees, got {args.spread}"
-    elif not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):
-        problem = f"--width and --height must be 16..4096 pixels, got {args.width} x {args.height}"
-    elif args.output.suffix.lower() != ".png" or args.output.is_dir():
-        problem = f"--output must be a .png file, got {str(args.output)!r}"
-    if problem is not None:
-        print(f"bh8 render: {problem}", file=sys.stderr)
-        return 2
-    with HandPlant(params=params, seed=args.seed) as plant:
-        try:
-            for spec in args.object:
-                plant.add_object_from_spec(spec)
-        except PlantError as error:
-            print(f"bh8 render: {error}", file=sys.stderr)
-            return 2
-        plant.set_drive(4, 14_648.0 if args.spread > 0 else -14_648.0, 1.0)
-        target = args.spread * 17.5
-        for _ in range(500):  # settle objects; spread to its angle
-            if args.spread > 0 and plant.motor_positions()[3] >= target:
-                plant.set_drive(4, 0.0, 1.0)
-            plant.step()
-        if args.closed:
-            close_hand(plant)
-            for _ in range(100):
-                plant.step()
-        target_point = tuple(float(v) for v in _camera_for(plant, None).target)
-        camera = Camera(target=target_point, distance=args.distance, yaw=args.yaw, pitch=args.pitch)
-        frames = []
-        if args.shapes in ("visual", "both"):
-            frames.append(render_frame(plant, args.width, args.height, camera))
-        if args.shapes in ("collision", "both"):
-            frames.append(collision_frame(plant, args.width, args.height, camera))
-        try:
-            save_png(args.output, np.hstack(frames))
-        except OSError as error:
-            print(f"bh8 render: cannot write {str(args.output)!r}: {error}", file=sys.stderr)
-            return 1
-    print(args.output)
-    return 0
+def display_available() -> bool:
+    """False on Linux and the BSDs when DISPLAY is not set. PyBullet's GUI then ends the whole
+    process (exit status 1, no exception), so it is checked before connecting."""
+    if sys.platform.startswith("linux") or "bsd" in sys.platform:
+        return bool(os.environ.get("DISPLAY"))
+    return True

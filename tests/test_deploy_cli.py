@@ -51,12 +51,12 @@ def policy_path(tmp_path_factory):
 @pytest.fixture
 def port_never_opened(monkeypatch):
     """Fails the test if deploy gets as far as connecting to the hand."""
-    import bh8_gym.client
+    import bh8_gym.agents.deploy
 
     def refuse(*args, **kwargs):
         raise AssertionError("deploy opened the port before refusing its arguments")
 
-    monkeypatch.setattr(bh8_gym.client, "BarrettHand", refuse)
+    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
 
 
 @pytest.mark.parametrize("option, value", [
@@ -192,7 +192,7 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
     try:
         with log.open("w") as log_file, BarrettHand(port) as hand:
             policy = PolicyTriggeringAtCycle3(load_policy(policy_path), unplugged)
-            deployment = Deployment(hand, policy, env, log_file, clock="cycles")
+            deployment = Deployment(hand, policy, env.unwrapped.interface, log_file, clock="cycles")
             deployment.setup(env.unwrapped.baud)
             reason = deployment.run(20)
     finally:
@@ -239,7 +239,7 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
     try:
         with (tmp_path / "deploy.jsonl").open("w") as log_file, BarrettHand(port) as hand:
             policy = PolicyTriggeringAtCycle3(load_policy(policy_path), silent)
-            deployment = Deployment(hand, policy, env, log_file, on_exit="none", clock="cycles")
+            deployment = Deployment(hand, policy, env.unwrapped.interface, log_file, on_exit="none", clock="cycles")
             deployment.setup(env.unwrapped.baud)
             before = len(written)
             reason = deployment.run(20)
@@ -277,7 +277,7 @@ def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_
     log = tmp_path / "deploy.jsonl"
     try:
         with log.open("w") as log_file, BarrettHand(port) as hand:
-            deployment = Deployment(hand, load_policy(policy_path), env, log_file, on_exit="none", clock="cycles")
+            deployment = Deployment(hand, load_policy(policy_path), env.unwrapped.interface, log_file, on_exit="none", clock="cycles")
             deployment.setup(env.unwrapped.baud)
             reason = deployment.run(2)
     finally:
@@ -359,3 +359,46 @@ def test_ctrl_c_during_the_setup_stops_the_hand_and_switches_the_rate_back(polic
     assert [r["event"] for r in records[-3:]] == ["command", "baud", "stop"]
     assert records[-2]["rate"] == 9600
     assert records[-1]["reason"] == "interrupted (Ctrl-C) during the setup"
+
+
+def test_deploy_never_loads_pybullet():
+    """`bh8 deploy` runs on the computer that drives a real hand: its import chain and the host's
+    LoopInterface of a policy's env (built from the env id and keyword arguments) load no PyBullet."""
+    script = (
+        "import sys\n"
+        "import bh8_gym.agents.deploy\n"
+        "from bh8_gym.cli import build_parser\n"
+        "from bh8_gym.envs.interfaces import interface_for\n"
+        "build_parser(['deploy'])\n"
+        "for env_id in ('BH8Grasp-v0', 'BH8FingerReach-v0'):\n"
+        "    interface = interface_for(env_id, {'randomize': False})\n"
+        "    interface.observation_from_feedback([0] * len(interface.layout.feedback_fields),\n"
+        "                                        [0] * len(interface.layout.control_fields), 0.0)\n"
+        "assert 'pybullet' not in sys.modules, 'deploy loaded pybullet'\n"
+        "print('ok')\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr
+
+
+def test_deploy_interface_is_the_env_interface():
+    """The interface deploy builds from a policy's metadata is the env's: setup script, layout,
+    spaces, observation names and clock."""
+    import gymnasium as gym
+
+    from bh8_gym.envs.interfaces import interface_for
+
+    kwargs = {"randomize": False, "lfv": True, "baud": 19200}
+    env = gym.make("BH8Grasp-v0", **kwargs).unwrapped
+    try:
+        host = interface_for("BH8Grasp-v0", kwargs)
+        mine = env.interface
+        assert host.setup_commands == mine.setup_commands and host.loop_command == mine.loop_command
+        assert host.baud_command == mine.baud_command == "PSET BAUD 192"
+        assert host.layout == mine.layout and host.observation_fields == mine.observation_fields
+        assert host.action_space == mine.action_space and host.cycle_seconds == mine.cycle_seconds
+        assert host.nominal_episode_steps() == mine.nominal_episode_steps()
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="unexpected keyword"):
+        interface_for("BH8Grasp-v0", {"lcx": True})

@@ -85,7 +85,7 @@ def test_setup_script_configures_the_firmware_as_the_layout_says(grasp):
 
     firmware = Firmware(seed=0)
     try:
-        for line in grasp.setup_commands:
+        for line in (*grasp.setup_commands, grasp.baud_command):
             reply = firmware.transact(line.encode() + b"\r")
             assert b"ERR" not in reply and reply.endswith(b"=> "), (line, reply)
         assert firmware.transact(grasp.loop_command.encode() + b"\r").endswith(b"*")

@@ -141,8 +141,7 @@ def test_deploy_on_served_env_is_byte_identical_to_in_process(policy_path, tmp_p
 def _client_setup(firmware, env) -> None:
     """What a client like deploy sends before LOOP, in its order: the rate first, then the rest,
     plus a motion the env's script does not have (it must not matter: LOOP entry restores)."""
-    lines = [next(line for line in env.setup_commands if line.startswith("PSET BAUD"))]
-    lines += [line for line in env.setup_commands if not line.startswith("PSET BAUD")]
+    lines = [env.baud_command, *env.setup_commands]
     lines.append("1M 3000")
     for line in lines:
         reply = firmware.transact(line.encode() + b"\r")
@@ -155,7 +154,7 @@ def test_every_loop_entry_starts_the_env_next_episode(capsys):
     LOOP in another layout is served plainly with a note on stderr (SPEC.md §5 blocks)."""
     import gymnasium as gym
 
-    from bh8_gym.virtual_serial import build_env_firmware
+    from bh8_gym.commands.serve import build_env_firmware
 
     served_env, firmware = build_env_firmware(ENV_ID, SEED, {"randomize": True})
     env = gym.make(ENV_ID, randomize=True).unwrapped

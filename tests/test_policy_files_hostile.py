@@ -215,7 +215,7 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(exported, tmp_pa
     def refuse(*args, **kwargs):
         raise AssertionError("deploy opened the port for a damaged policy")
 
-    monkeypatch.setattr(bh8_gym.client, "BarrettHand", refuse)
+    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
     log = tmp_path / "deploy.jsonl"
     capsys.readouterr()
     assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2

@@ -240,10 +240,11 @@ def test_an_unpaced_server_paces_a_motion_that_never_ends(tmp_path):
 
 _SERVER_WHOSE_PHYSICS_FAILS = """
 import math, sys
-from bh8_gym import virtual_serial
+from bh8_gym.commands.serve import serve
 from bh8_gym.plant import HandPlant
+from bh8_gym.simulator import build_firmware
 
-firmware = virtual_serial.build_firmware(sys.argv[1], "4.3", 0, ())
+firmware = build_firmware(sys.argv[1], "4.3", 0, ())
 real_step = firmware.plant.step_with_drives
 steps = []
 
@@ -257,7 +258,7 @@ def failing_step(velocities, fractions):
     raise ValueError("cannot convert float NaN to integer")
 
 firmware.plant.step_with_drives = failing_step
-sys.exit(virtual_serial.serve(firmware, store=sys.argv[1]))
+sys.exit(serve(firmware, store=sys.argv[1]))
 """
 
 

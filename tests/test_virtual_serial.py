@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 
 from conftest import PROMPT, PtyLink
 from bh8_gym.realtime_codec import LoopLayout
-from bh8_gym.virtual_serial import default_state_dir
+from bh8_gym.commands.serve import default_state_dir
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
 
@@ -233,7 +233,7 @@ def test_a_damaged_store_is_set_aside_with_a_message(tmp_path):
 
 _RUNAWAY_SERVER = """
 import sys
-from bh8_gym import virtual_serial
+from bh8_gym.commands.serve import serve
 
 class Plant:
     def close(self):
@@ -254,15 +254,16 @@ class RunawayFirmware:
     def shutdown(self):
         print("shut down", file=sys.stderr, flush=True)
 
-sys.exit(virtual_serial.serve(RunawayFirmware()))
+sys.exit(serve(RunawayFirmware()))
 """
 
 _SERVER_SAVING_COUNTERS_EVERY_HALF_SECOND = """
 import sys
-from bh8_gym import virtual_serial
+from bh8_gym.simulator import build_firmware
+from bh8_gym.virtual_serial import PtyServer
 
-firmware = virtual_serial.build_firmware(sys.argv[1], "4.3", 0, ())
-server = virtual_serial.PtyServer(firmware, counter_save_interval=0.5)
+firmware = build_firmware(sys.argv[1], "4.3", 0, ())
+server = PtyServer(firmware, counter_save_interval=0.5)
 print(server.device, flush=True)
 server.serve_forever()
 """

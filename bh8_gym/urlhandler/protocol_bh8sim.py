@@ -31,7 +31,7 @@ import urllib.parse
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, to_bytes
 
 from bh8_gym.protocol import FIRMWARE_PROFILES
-from bh8_gym.virtual_serial import build_firmware, shutdown_firmware
+from bh8_gym.simulator import build_firmware, shutdown_firmware
 
 SCHEME = "bh8sim"
 # Simulated seconds run per firmware call while a read with a timeout waits for bytes: a reply is
