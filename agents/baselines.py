@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bh8_gym.agents.evaluate import episode_object
+from bh8_gym.envs.scenes import episode_object
 from bh8_gym.envs.wrappers import bytes_to_unit
 from bh8_gym.loop_interface import END_TOLERANCE_S
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR

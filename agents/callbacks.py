@@ -1,11 +1,15 @@
 """SB3 callbacks for `bh8 train`: validation evaluation with best-model keeping, atomic checkpoints,
 a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency), and stopping on a
-signal."""
+signal. Named apart from SB3's own CheckpointCallback and ProgressBarCallback, which work otherwise."""
 from __future__ import annotations
 
-import csv
-
 from stable_baselines3.common.callbacks import BaseCallback
+from tqdm.auto import tqdm
+
+from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
+from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.evaluate import run_episodes, summarize
+from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
 
 class EvaluationCallback(BaseCallback):
@@ -27,7 +31,6 @@ class EvaluationCallback(BaseCallback):
         self.n_episodes = n_episodes
         self.eval_seed = eval_seed
         self._env = None
-        self._csv_path = trainer.out_dir / "evaluations.csv"
         if state.get("next_evaluation", 0) <= 0:
             state["next_evaluation"] = eval_freq
 
@@ -39,26 +42,15 @@ class EvaluationCallback(BaseCallback):
         return True
 
     def evaluate(self) -> dict:
-        from bh8_gym.agents.env_factory import make_env
-        from bh8_gym.agents.evaluate import run_episodes, summarize
-        from bh8_gym.agents.train import BEST_MODEL_FILE, EVALUATION_COLUMNS, save_model_atomic
-
         config = self.trainer.config
         if self._env is None:
             self._env = make_env(config["env_id"], config["eval_env_kwargs"])
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
-        from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
-
         policy = HostObservationModel(self.model) if host_observation_count(self.model) else self.model
         results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed)
         summary = summarize(results)
         row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
-        new_file = not self._csv_path.exists()
-        with self._csv_path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=EVALUATION_COLUMNS)
-            if new_file:
-                writer.writeheader()
-            writer.writerow(row)
+        append_evaluation(self.trainer.out_dir, row)
         for key in ("success_rate", "mean_return", "mean_length"):
             self.logger.record(f"eval/{key}", summary[key])
         score = (summary["success_rate"], summary["mean_return"])
@@ -75,7 +67,7 @@ class EvaluationCallback(BaseCallback):
             self._env = None
 
 
-class CheckpointCallback(BaseCallback):
+class RunCheckpointCallback(BaseCallback):
     """Every `checkpoint_freq` env steps: the trainer's atomic checkpoint (model, buffer, state)."""
 
     def __init__(self, trainer, state: dict, checkpoint_freq: int):
@@ -97,7 +89,7 @@ class CheckpointCallback(BaseCallback):
         return True
 
 
-class ProgressBarCallback(BaseCallback):
+class TrainingProgressCallback(BaseCallback):
     """A tqdm bar over the run's total env steps, starting where a resumed run left off."""
 
     def __init__(self, total_timesteps: int):
@@ -106,8 +98,6 @@ class ProgressBarCallback(BaseCallback):
         self._bar = None
 
     def _on_training_start(self) -> None:
-        from tqdm.auto import tqdm
-
         self._bar = tqdm(total=self.total_timesteps, initial=self.num_timesteps, unit="step", dynamic_ncols=True)
 
     def _on_step(self) -> bool:

@@ -11,13 +11,13 @@ from typing import Any, Mapping
 
 import gymnasium as gym
 
+from bh8_gym.envs.wrappers import ContinuousActions
+
 
 def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int | None = None,
              continuous: bool = True, render_mode: str | None = None) -> gym.Env:
     """`gym.make(env_id, **env_kwargs)` (bh8_gym registered), wrapped in `ContinuousActions`, with a
     TimeLimit no shorter than the env's longest episode."""
-    import bh8_gym  # noqa: F401  (registers the environments)
-
     kwargs = copy.deepcopy(dict(env_kwargs or {}))
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
@@ -38,8 +38,6 @@ def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, seed: int
             raise
         raise ValueError(f"{env_id}: {error}") from None  # a typo in a config or --env-kwargs
     if continuous and not _is_float_box(env.action_space):
-        from bh8_gym.envs.wrappers import ContinuousActions
-
         env = ContinuousActions(env)
     if seed is not None:
         env.reset(seed=seed)

@@ -29,9 +29,16 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
-from bh8_gym.agents.policy_file import add_trust_argument
+from bh8_gym.agents.baselines import make_baseline
+from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
+from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations
 from bh8_gym.cli import integer_argument, json_object_argument
+from bh8_gym.envs.objects import object_family
+from bh8_gym.envs.scenes import episode_object
+from bh8_gym.rendering import steps_per_frame, write_animation
 
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
@@ -74,11 +81,6 @@ class EpisodeResult:
     object_set: str = ""
     family: str = ""
     safety_stop: bool = False
-
-
-def episode_object(env):
-    """The ObjectSpec of the env's current episode (None for envs without objects)."""
-    return getattr(getattr(env.unwrapped.scene, "episode", None), "spec", None)
 
 
 def object_name(spec) -> str:
@@ -134,12 +136,8 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
     (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them). `progress`
     shows a bar on a terminal (`bh8 eval`). `object_set` labels the results.
     """
-    from bh8_gym.envs.objects import object_family
-
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
-    from tqdm import tqdm
-
     episodes = tqdm(range(n_episodes), desc="episodes", unit="ep", disable=None if progress else True, leave=False)
     base = env.unwrapped
     tracker = StrainTracker(base.layout)
@@ -333,9 +331,6 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
                baseline=None, every: int | None = None) -> Path:
     """Render `episodes` sample episodes (headless TinyRenderer) into one real-time GIF, a frame
     every `every` steps (default `rendering.steps_per_frame`: frames of at least 20 ms)."""
-    from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.rendering import steps_per_frame, write_animation
-
     env = make_env(env_id, env_kwargs, render_mode="rgb_array")
     frames = []
     try:
@@ -416,9 +411,6 @@ def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_f
 
 
 def run(args: argparse.Namespace) -> int:
-    from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import PolicyFileError, load_policy
-
     policy, baseline, metadata = None, None, {}
     try:
         if args.policy is not None:
@@ -450,8 +442,6 @@ def run(args: argparse.Namespace) -> int:
             env = make_env(env_id, set_kwargs[name])
             try:
                 if args.baseline is not None:
-                    from bh8_gym.agents.baselines import make_baseline
-
                     baseline = make_baseline(args.baseline, env)
                 results += run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
                                         progress=not args.no_progress, object_set=name)
@@ -492,9 +482,7 @@ def run(args: argparse.Namespace) -> int:
         curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
         if curve_dir is not None:
             for folder in (curve_dir, curve_dir.parent):
-                if (folder / "evaluations.csv").exists():
-                    from bh8_gym.agents.train import read_evaluations
-
+                if (folder / EVALUATIONS_FILE).exists():
                     plot_training_curve(read_evaluations(folder), args.out / "training_curve.png")
                     break
         if args.gif_episodes > 0:

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, add_trust_argument
+from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, SB3Policy, add_trust_argument, export_sb3_policy
 
 # float32 torch against float64 numpy on a few-layer MLP: differences are ~1e-6; 1e-4 leaves margin
 DEFAULT_TOLERANCE = 1e-4
@@ -39,8 +40,6 @@ def max_action_difference(sb3_policy, numpy_policy: NumpyPolicy, n_observations:
 def check_run_metadata(sb3_policy, model_path: Path) -> None:
     """The run.json found beside the model must exist and describe it: eval and deploy rebuild the
     observation layout from it, so a missing or foreign one makes an unusable export."""
-    from bh8_gym.agents.env_factory import make_env
-
     env_id = sb3_policy.metadata.get("env_id")
     if env_id is None:
         raise PolicyFileError(f"no run.json beside {str(model_path)!r} (or one folder up): the export would not know "
@@ -67,8 +66,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bh8_gym.agents.policy_file import SB3Policy, export_sb3_policy
-
     out = args.out or args.model.with_suffix(".npz")
     if out.suffix != ".npz":
         print(f"bh8 export: output must end in .npz, got {str(out)!r}", file=sys.stderr)

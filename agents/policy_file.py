@@ -17,7 +17,7 @@ pickled entry is replaced by a stand-in rebuilt from the plain JSON SB3 writes b
 bounds, schedules by constants, which prediction does not use), and a file carrying any other
 pickled entry is refused. The weights are read by torch with `weights_only=True` either way.
 
-This module imports only numpy at import time; `export_sb3_policy` imports torch lazily.
+This module imports numpy and gymnasium at import time; torch and SB3 only when a function needs them.
 """
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ import zipfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
 
+import gymnasium as gym
 import numpy as np
 
 FORMAT = "bh8-numpy-policy/1"
@@ -224,7 +225,6 @@ def export_sb3_policy(model, path: str | os.PathLike, vec_normalize=None, metada
     `vec_normalize`: the training `VecNormalize` (its observation statistics are baked in).
     `metadata`: extra JSON-serialisable facts (env id, env kwargs, privileged, ...).
     """
-    import gymnasium as gym
     from stable_baselines3 import PPO, SAC
 
     policy = model.policy
@@ -387,8 +387,6 @@ def _plain_setting(value, classes: dict[str, type], path: Path):
 
 def _box_from_json(key: str, entry: dict, path: Path):
     """A gymnasium Box from the plain fields SB3 writes beside a pickled one (dtype, shape, bounds)."""
-    import gymnasium as gym
-
     def numbers(text) -> np.ndarray:
         if not isinstance(text, str) or "..." in text:
             raise ValueError

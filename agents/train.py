@@ -28,12 +28,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import inspect
-import io
 import json
 import os
-import shutil
 import signal
 import sys
 import threading
@@ -42,15 +39,23 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
+
+from bh8_gym.agents.env_factory import EnvFactory, make_env
 from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
+from bh8_gym.agents.run_files import (
+    BEST_MODEL_FILE,
+    copy_atomic,
+    drop_evaluations_after,
+    save_model_atomic,
+    write_json_atomic,
+)
 from bh8_gym.cli import handling_signals, integer_argument
+from bh8_gym.envs import ENV_IDS
 
 ALGORITHMS = ("PPO", "SAC")
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
-EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci_high", "mean_return",
-                      "std_return", "mean_length", "episodes")
 CHECKPOINT_DIR = "checkpoints"
-BEST_MODEL_FILE = "best_model.zip"
 # A checkpoint's files besides latest.json, which names their step and is replaced after them.
 CHECKPOINT_FILES = ("latest.zip", "latest_replay_buffer.pkl", BEST_MODEL_FILE)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -103,14 +108,8 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     return config
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write `text` (UTF-8) so a crash leaves either the old file or the complete new one."""
-    atomic_write(path, lambda handle: handle.write(text.encode()))
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON so a crash leaves either the old file or the complete new one."""
-    write_text_atomic(path, json.dumps(data, indent=2, sort_keys=True))
 
 
 def read_run_json(path: Path) -> dict:
@@ -124,10 +123,6 @@ def read_run_json(path: Path) -> dict:
     return data
 
 
-def copy_atomic(source: Path, destination: Path) -> None:
-    """Copy a file (`atomic_write`)."""
-    with open(source, "rb") as handle:
-        atomic_write(destination, lambda out: shutil.copyfileobj(handle, out))
 
 
 def _staged(path: Path) -> Path:
@@ -135,9 +130,6 @@ def _staged(path: Path) -> Path:
     return path.with_name(path.name + ".next")
 
 
-def save_model_atomic(model, path: Path) -> None:
-    """`model.save`, atomically (`atomic_write`: SB3 saves to a file object as to a path)."""
-    atomic_write(path, model.save)
 
 
 def _policy_kwargs(config: dict) -> dict:
@@ -185,10 +177,6 @@ def _algorithm_class(name: str):
 
 def _check_config(config: dict) -> None:
     """The env id and the [hyperparameters] names, checked before anything is built or written."""
-    import gymnasium as gym
-
-    from bh8_gym.envs import ENV_IDS
-
     if config["env_id"] not in gym.registry:
         raise TrainingError(f"env_id {config['env_id']!r} is not a registered environment "
                             f"(bh8-gym has {', '.join(ENV_IDS)})")
@@ -257,8 +245,6 @@ class Trainer:
     def _check_env_kwargs(self) -> None:
         """Build the training and evaluation envs once here, so that a typo in the config is an
         error naming it rather than a SubprocVecEnv worker dying with a broken pipe."""
-        from bh8_gym.agents.env_factory import make_env
-
         for table in ("env_kwargs", "eval_env_kwargs"):
             try:
                 make_env(self.config["env_id"], self.config[table]).close()
@@ -267,8 +253,6 @@ class Trainer:
 
     def _vec_env(self):
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-        from bh8_gym.agents.env_factory import EnvFactory
 
         env_kwargs = dict(self.config["env_kwargs"])
         if self.asymmetric_critic:
@@ -384,10 +368,10 @@ class Trainer:
         import torch
 
         from bh8_gym.agents.callbacks import (
-            CheckpointCallback,
             EvaluationCallback,
-            ProgressBarCallback,
+            RunCheckpointCallback,
             StopCallback,
+            TrainingProgressCallback,
         )
 
         # One thread per process: with SubprocVecEnv on 2 cores this is the fastest (measured).
@@ -430,10 +414,10 @@ class Trainer:
                     self, state, eval_freq=int(eval_config.get("freq", 10_000)),
                     n_episodes=int(eval_config.get("episodes", 10)), eval_seed=int(eval_config.get("seed", 10_000)),
                 )
-                callbacks = [evaluation, CheckpointCallback(self, evaluation.state,
-                                                            int(self.config["train"].get("checkpoint_freq", 10_000)))]
+                callbacks = [evaluation, RunCheckpointCallback(self, evaluation.state,
+                                                               int(self.config["train"].get("checkpoint_freq", 10_000)))]
                 if self.progress:
-                    callbacks.append(ProgressBarCallback(total_timesteps))
+                    callbacks.append(TrainingProgressCallback(total_timesteps))
                 callbacks.append(StopCallback(self))
                 model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
                             tb_log_name=self.config["algorithm"])
@@ -528,27 +512,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"trained to {state['num_timesteps']} steps; best validation success rate {state['best_success_rate']:.2f} "
               f"(step {state['best_timesteps']}, {args.out / BEST_MODEL_FILE}); outputs in {args.out}")
     return 0
-
-
-def read_evaluations(out_dir: Path) -> list[dict[str, float]]:
-    """The rows of `evaluations.csv` (the training curve) as floats."""
-    path = Path(out_dir) / "evaluations.csv"
-    with path.open(newline="") as handle:
-        return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
-
-
-def drop_evaluations_after(out_dir: Path, timesteps: int) -> None:
-    """Remove the `evaluations.csv` rows past `timesteps` (atomically): a run killed after its last
-    checkpoint made them, and the resumed run makes them again."""
-    path = Path(out_dir) / "evaluations.csv"
-    if not path.exists():
-        return
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    kept = [row for row in rows if float(row["timesteps"]) <= timesteps]
-    if len(kept) < len(rows):
-        text = io.StringIO(newline="")
-        writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
-        writer.writeheader()
-        writer.writerows(kept)
-        write_text_atomic(path, text.getvalue())

@@ -150,7 +150,8 @@ def _tiny_reach_config(algorithm: str = "PPO") -> dict:
 def test_train_writes_checkpoints_and_resume_continues_the_step_count(tmp_path):
     """PPO on 2 SubprocVecEnv workers: a checkpoint, a best model and an evaluation row; --resume
     continues from the checkpoint's step counter instead of starting again."""
-    from bh8_gym.agents.train import Trainer, TrainingError, read_evaluations
+    from bh8_gym.agents.run_files import read_evaluations
+    from bh8_gym.agents.train import Trainer, TrainingError
 
     config = _tiny_reach_config("PPO")
     out = tmp_path / "run"

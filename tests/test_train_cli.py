@@ -203,7 +203,7 @@ def test_resume_accepts_options_that_agree_with_the_run(short_run):
 def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
     """A run killed after an evaluation but before the next checkpoint: the resumed run makes that
     evaluation again, and evaluations.csv holds it once. The summary then names the best model."""
-    from bh8_gym.agents.train import read_evaluations
+    from bh8_gym.agents.run_files import read_evaluations
 
     config = _write_config(tmp_path / "tiny.toml", eval_freq=32)
     run = tmp_path / "run"

@@ -264,6 +264,11 @@ def build_scene(env_id: str, plant, options: SceneOptions | None = None):
     raise ValueError(f"no scene for environment {env_id!r}; expected BH8Grasp-v0 or BH8FingerReach-v0")
 
 
+def episode_object(env) -> ObjectSpec | None:
+    """The ObjectSpec of `env`'s current episode (None for a scene without objects)."""
+    return getattr(getattr(env.unwrapped.scene, "episode", None), "spec", None)
+
+
 def scene_for_seed(
     env_id: str,
     plant,
