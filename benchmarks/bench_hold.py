@@ -38,6 +38,7 @@ import pybullet as p
 
 from bh8_gym.firmware import Firmware
 from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
+from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant, PlantParameters
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
@@ -87,14 +88,14 @@ def _object(plant: HandPlant, trial: Trial) -> tuple[int, float]:
     if shape == "box":
         kind, dims, height = "box", (size, size, HEIGHT), HEIGHT
     elif shape == "cylinder":
-        kind, dims, height = "cylinder", (size / 2, HEIGHT), HEIGHT
+        kind, dims, height = "cylinder", (size, HEIGHT), HEIGHT
     elif shape == "sphere":
-        kind, dims, height = "sphere", (size / 2,), size
-    else:
-        kind, dims, height = "capsule", (size / 2, max(HEIGHT - size, 1e-3)), max(HEIGHT, size + 1e-3)
+        kind, dims, height = "sphere", (size,), size
+    else:  # full extents: diameter, whole length (caps included)
+        kind, dims, height = "capsule", (size, max(HEIGHT, size + 1e-3)), max(HEIGHT, size + 1e-3)
     yaw = (0.0, 0.0, math.sin(trial.yaw / 2), math.cos(trial.yaw / 2))
-    body = plant.add_object(kind, dims, position=(trial.offset[0], trial.offset[1], height / 2 + 1e-4),
-                            orientation=yaw, mass=trial.mass, friction=trial.friction)
+    body = add_object(plant, ObjectSpec(kind, dims, mass=trial.mass, friction=trial.friction),
+                      position=(trial.offset[0], trial.offset[1], height / 2 + 1e-4), orientation=yaw)
     return body, height
 
 

@@ -14,19 +14,20 @@ import time
 
 import pybullet as p
 
+from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
 
 from physics_timer import PhysicsTimer
 
 
-def scene() -> HandPlant:
+def scene() -> tuple[HandPlant, int]:
     plant = HandPlant(seed=0)
     plant.set_wrist_pose((0.0, 0.0, 0.225), (1.0, 0.0, 0.0, 0.0), teleport=True)
-    plant.add_object("cylinder", (0.03, 0.13), position=(0.0, 0.0, 0.065), mass=0.2)
+    cylinder = add_object(plant, ObjectSpec("cylinder", (0.06, 0.13), mass=0.2, friction=None), position=(0.0, 0.0, 0.065))
     plant.set_drives([24_414.0] * 3 + [2_000.0], [1.0, 1.0, 1.0, 0.5])
     for _ in range(500):  # close onto the box so the timed part is in contact
         plant.step()
-    return plant
+    return plant, cylinder
 
 
 def run_plant(plant: HandPlant, steps: int) -> float:
@@ -45,11 +46,11 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0,
                         help="simulated seconds per measurement (default: %(default)s)")
     args = parser.parse_args()
-    plant = scene()
+    plant, cylinder = scene()
     steps = int(args.seconds / plant.dt)
     start_state = plant.save_state()
     plant_wall = run_plant(plant, steps)
-    contacts = len(plant.contacts(plant.objects[0], plant.hand_id))
+    contacts = len(plant.contacts(cylinder, plant.hand_id))
     client = plant.client
     start = time.perf_counter()
     for _ in range(steps):  # from where the plant's run ended, its last joint motor command kept

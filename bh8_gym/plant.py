@@ -40,10 +40,7 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_left
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
-from pathlib import Path
 
 import numpy as np
 import pybullet as p
@@ -77,16 +74,6 @@ OUTER_REL_GEAR_RATIO = kin.OUTER_REL_COUNTS_PER_DEG_262
 OUTER_ABS_GEAR_RATIO = kin.OUTER_ABS_COUNTS_PER_DEG_262
 SPREAD_GEAR_RATIO = kin.SPREAD_COUNTS_PER_DEG_262
 
-OBJECT_KINDS = ("box", "cylinder", "sphere", "capsule", "urdf", "mesh")
-# Our bounds on an object (SI units), checked before PyBullet sees it: far outside them its solver
-# fails (a sphere of 1e308 m turned the world to NaN; a 100 kg cube of 1 mm on the palm kept HI
-# from ending). Each full extent: a 1 mm bead to a 2 m shelf, far more than the hand (fingers
-# 120 mm, App. A) closes around.
-OBJECT_EXTENT_RANGE_M = (0.001, 2.0)
-# Mass: 1 g to 10 kg, past the 2 kg per fingertip payload (App. A), so an object can be too heavy.
-OBJECT_MASS_RANGE_KG = (0.001, 10.0)
-OBJECT_FRICTION_MAX = 10.0  # Coulomb coefficient; rubber on rubber is about 1-2
-OBJECT_POSITION_LIMIT_M = 10.0  # each coordinate: the world around the hand
 # Bullet's btBroadphaseProxy collision filter groups, PyBullet's defaults for new bodies.
 _DEFAULT_FILTER, _STATIC_FILTER, _ALL_FILTERS = 1, 2, -1
 
@@ -196,7 +183,7 @@ class PlantParameters:
     finger_friction: float = 0.8  # finger links on typical objects (aluminium/rubber-ish pads)
     palm_friction: float = 0.6
     table_friction: float = 0.6
-    object_friction: float = 0.7  # default for add_object
+    object_friction: float = 0.7  # default of an object placed by hand (bh8_gym.objects.add_object)
     # Static friction that holds: PyBullet's friction anchors keep a sticking contact's anchor point, so
     # a held object does not creep through solver error (without them a worm-locked grasp slipped 9 mm
     # and turned 33° in 5 s).
@@ -294,7 +281,6 @@ class HandPlant:
         if self._client < 0:
             raise RuntimeError("PyBullet could not connect (gui=True needs a display)")
         self._saved: dict[int, _PlantState] = {}
-        self._objects: list[int] = []
         try:
             self._build_world()
         except Exception:
@@ -1008,124 +994,6 @@ class HandPlant:
         position, orientation = p.multiplyTransforms(com_position, com_orientation, inverse[0], inverse[1])
         return np.array(position), np.array(orientation)
 
-    def add_object(
-        self,
-        kind: str,
-        size=None,
-        *,
-        position=(0.0, 0.0, 0.1),
-        orientation=(0.0, 0.0, 0.0, 1.0),
-        mass: float = 0.1,
-        friction: float | None = None,
-        path: str | Path | None = None,
-        scale: float = 1.0,
-        fixed: bool = False,
-        color=(0.85, 0.35, 0.2, 1.0),
-    ) -> int:
-        """Add an object; returns its PyBullet body id.
-
-        kind "box": size = (x, y, z) full lengths, m; "cylinder"/"capsule": size = (radius, length),
-        the axis along z; "sphere": size = radius; "urdf": `path` loaded with globalScaling `scale`
-        (its own masses); "mesh": `path` (OBJ/STL) scaled by `scale`, with `mass` (convex hull for
-        collision). `fixed` makes it immovable (mass 0). `friction` defaults to params.object_friction.
-        PlantError for a value outside the OBJECT_* bounds or a mesh PyBullet cannot read safely
-        (`bh8_gym.meshes`), before PyBullet sees it.
-        """
-        cid = self._client
-        if kind not in OBJECT_KINDS:
-            raise PlantError(f"object kind must be one of {OBJECT_KINDS}, got {kind!r}")
-        mass = float(mass)
-        if not (math.isfinite(mass) and OBJECT_MASS_RANGE_KG[0] <= mass <= OBJECT_MASS_RANGE_KG[1]):
-            raise PlantError(f"object mass must be {OBJECT_MASS_RANGE_KG[0]:g} to {OBJECT_MASS_RANGE_KG[1]:g} kg, got {mass!r}")
-        scale = float(scale)
-        if not (math.isfinite(scale) and scale > 0.0):
-            raise PlantError(f"object scale must be positive, got {scale!r}")
-        friction = self.params.object_friction if friction is None else float(friction)
-        if not (math.isfinite(friction) and 0.0 <= friction <= OBJECT_FRICTION_MAX):
-            raise PlantError(f"object friction must be 0 to {OBJECT_FRICTION_MAX:g}, got {friction!r}")
-        position = [float(v) for v in position]
-        if len(position) != 3 or not all(math.isfinite(v) and abs(v) <= OBJECT_POSITION_LIMIT_M for v in position):
-            raise PlantError(f"object position must be x, y, z within ±{OBJECT_POSITION_LIMIT_M:g} m, got {position!r}")
-        orientation = [float(v) for v in orientation]
-        if len(orientation) != 4 or not all(math.isfinite(v) for v in orientation) or math.hypot(*orientation) < 1e-6:
-            raise PlantError(f"object orientation must be a quaternion x, y, z, w, got {orientation!r}")
-        if kind == "urdf":
-            urdf = self._existing(path)
-            check_urdf_file(urdf)
-            with file_errors_named(kind, path):
-                body = p.loadURDF(str(urdf), position, orientation, globalScaling=scale,
-                                  useFixedBase=fixed, physicsClientId=cid)
-            try:
-                check_loaded_object(cid, body, f"URDF {str(path)!r} at scale {scale:g}")
-            except PlantError:
-                p.removeBody(body, physicsClientId=cid)
-                raise
-        else:
-            if kind == "mesh":
-                mesh = str(self._existing(path))
-                check_mesh_file(mesh, scale)
-                geometry, length = dict(shapeType=p.GEOM_MESH, fileName=mesh, meshScale=[scale] * 3), None
-            else:
-                geometry = self._primitive(kind, size)
-                length = geometry.pop("length", None)
-            with file_errors_named(kind, path):
-                collision = p.createCollisionShape(**geometry, physicsClientId=cid)
-            if length is not None:  # createCollisionShape takes `height`, createVisualShape `length`
-                geometry["length"] = geometry.pop("height")
-            visual = p.createVisualShape(**geometry, rgbaColor=color, physicsClientId=cid)
-            body = p.createMultiBody(0.0 if fixed else mass, collision, visual, position, orientation, physicsClientId=cid)
-        for link in range(-1, p.getNumJoints(body, physicsClientId=cid)):
-            p.changeDynamics(body, link, lateralFriction=friction, rollingFriction=1e-4, spinningFriction=1e-3, physicsClientId=cid)
-        self._objects.append(body)
-        return body
-
-    @staticmethod
-    def _existing(path) -> Path:
-        if path is None:
-            raise PlantError("this object kind needs a file path (path=...)")
-        resolved = Path(path).expanduser()
-        if not resolved.is_file():
-            raise PlantError(f"object file not found: {str(path)!r}")
-        return resolved
-
-    @staticmethod
-    def _primitive(kind: str, size) -> dict:
-        try:
-            values = [float(v) for v in (size if np.ndim(size) else [size])]
-        except (TypeError, ValueError):
-            raise PlantError(f"{kind} size must be numbers, got {size!r}") from None
-        expected = {"box": 3, "sphere": 1, "cylinder": 2, "capsule": 2}[kind]
-        if len(values) != expected or not all(math.isfinite(v) and v > 0.0 for v in values):
-            raise PlantError(f"{kind} size needs {expected} positive number(s), got {size!r}")
-        if kind == "box":
-            extents = values
-        elif kind == "sphere":
-            extents = [2.0 * values[0]]
-        else:  # (radius, length); a capsule's caps add a radius at each end
-            extents = [2.0 * values[0], values[1] + (2.0 * values[0] if kind == "capsule" else 0.0)]
-        check_object_extents(extents, f"{kind} {size!r}")
-        if kind == "box":
-            return dict(shapeType=p.GEOM_BOX, halfExtents=[v / 2.0 for v in values])
-        if kind == "sphere":
-            return dict(shapeType=p.GEOM_SPHERE, radius=values[0])
-        shape_type = p.GEOM_CYLINDER if kind == "cylinder" else p.GEOM_CAPSULE
-        return dict(shapeType=shape_type, radius=values[0], height=values[1], length=values[1])
-
-    def add_object_from_spec(self, spec: str) -> int:
-        """Add an object from a command-line spec (see `parse_object_spec`)."""
-        kwargs = parse_object_spec(spec)
-        return self.add_object(kwargs.pop("kind"), kwargs.pop("size", None), **kwargs)
-
-    def remove_object(self, body: int) -> None:
-        if body not in self._objects:
-            raise PlantError(f"no object with body id {body!r}")
-        p.removeBody(body, physicsClientId=self._client)
-        self._objects.remove(body)
-
-    @property
-    def objects(self) -> tuple[int, ...]:
-        return tuple(self._objects)
-
     def object_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
         position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
         return np.array(position), np.array(orientation)
@@ -1226,129 +1094,3 @@ class HandPlant:
             self.close()
         except Exception:
             pass
-
-
-def check_object_extents(extents, what: str) -> None:
-    """PlantError unless every full extent (m) of the object `what` is within OBJECT_EXTENT_RANGE_M."""
-    low, high = OBJECT_EXTENT_RANGE_M
-    if not all(math.isfinite(v) and low <= v <= high for v in extents):
-        shown = ", ".join(f"{v:.3g}" for v in extents)
-        raise PlantError(f"{what} measures {shown} m: each extent must be {low:g} to {high:g} m")
-
-
-def check_mesh_file(path, scale: float) -> None:
-    """PlantError unless `path` is an OBJ/STL mesh PyBullet reads safely (`bh8_gym.meshes`: a bad
-    face index would crash the process) whose size at `scale` is within OBJECT_EXTENT_RANGE_M."""
-    from bh8_gym.meshes import MeshError, mesh_bounds
-
-    try:
-        low, high = mesh_bounds(path)
-    except MeshError as error:
-        raise PlantError(str(error)) from None
-    check_object_extents([float(v) for v in (high - low) * scale], f"mesh {str(path)!r} at scale {scale:g}")
-
-
-def check_urdf_file(path) -> None:
-    """PlantError unless each OBJ/STL mesh the URDF `path` names is one PyBullet reads safely
-    (`check_mesh_file`'s reader; its size is checked on the loaded body, `check_loaded_object`)."""
-    import xml.etree.ElementTree as ElementTree
-
-    from bh8_gym.meshes import MESH_SUFFIXES, MeshError, mesh_bounds
-
-    path = Path(path)
-    try:
-        root = ElementTree.parse(path).getroot()
-    except (ElementTree.ParseError, OSError, ValueError):
-        return  # not XML: PyBullet's loader refuses it cleanly (file_errors_named)
-    for mesh in root.iter("mesh"):
-        name = mesh.get("filename") or ""
-        name = name.removeprefix("package://")
-        if Path(name).suffix.lower() not in MESH_SUFFIXES:
-            continue  # PyBullet's own readers (COLLADA visuals) or no file: nothing to check here
-        resolved = path.parent / name
-        if resolved.exists():  # a missing file is PyBullet's clean "cannot load"
-            try:
-                mesh_bounds(resolved)
-            except MeshError as error:
-                raise PlantError(f"URDF {str(path)!r}: {error}") from None
-
-
-def check_urdf_object(path, scale: float) -> None:
-    """`check_urdf_file`, then the URDF loaded at `scale` into a scratch PyBullet world and checked
-    by `check_loaded_object`: a PlantError before any world of ours holds it."""
-    check_urdf_file(path)
-    client = p.connect(p.DIRECT)
-    try:
-        with file_errors_named("urdf", path):
-            body = p.loadURDF(str(path), globalScaling=float(scale), physicsClientId=client)
-        check_loaded_object(client, body, f"URDF {str(path)!r} at scale {scale:g}")
-    finally:
-        p.disconnect(client)
-
-
-def check_loaded_object(client: int, body: int, what: str) -> None:
-    """PlantError unless every link of a loaded `body` has a finite size and mass within the
-    upper bounds (a URDF's links may be small, massless helpers)."""
-    for link in range(-1, p.getNumJoints(body, physicsClientId=client)):
-        low, high = p.getAABB(body, link, physicsClientId=client)
-        extents = [h - l for l, h in zip(low, high)]
-        if not all(math.isfinite(v) and v <= OBJECT_EXTENT_RANGE_M[1] for v in extents):
-            check_object_extents(extents, what)
-        mass = p.getDynamicsInfo(body, link, physicsClientId=client)[0]
-        if not (math.isfinite(mass) and 0.0 <= mass <= OBJECT_MASS_RANGE_KG[1]):
-            raise PlantError(f"{what}: a link's mass is {mass!r} kg; at most {OBJECT_MASS_RANGE_KG[1]:g} kg")
-
-
-@contextmanager
-def file_errors_named(kind: str, path) -> Iterator[None]:
-    """PyBullet's bare "Cannot load URDF file" / "createCollisionShape failed" as a PlantError (a
-    ValueError) naming the file `kind` ("urdf" or "mesh") `path`."""
-    try:
-        yield
-    except p.error as error:
-        raise PlantError(f"PyBullet cannot load the {kind} file {str(path)!r} ({error}): not a valid "
-                         f"{'URDF' if kind == 'urdf' else 'OBJ/STL mesh'}?") from None
-
-
-def parse_object_spec(spec: str) -> dict:
-    """Parse an object spec for `bh8 serve --object` / `bh8 render --object` into add_object kwargs.
-
-    Forms: `box:X[xY[xZ]]`, `sphere:R`, `cylinder:RxL`, `capsule:RxL`, `path/to/model.urdf[:scale]`,
-    `path/to/mesh.obj[:scale]`; each optionally followed by `@x,y,z` (position, m) and `,mass=M`-style
-    options after `;` (e.g. `box:0.05x0.05x0.08@0,0,0.04;mass=0.2;friction=0.9`).
-    """
-    if not isinstance(spec, str) or not spec.strip():
-        raise PlantError(f"object spec must be a non-empty string, got {spec!r}")
-    body, *options = spec.strip().split(";")
-    kwargs: dict = {}
-    if "@" in body:
-        body, where = body.rsplit("@", 1)
-        try:
-            position = [float(v) for v in where.split(",")]
-        except ValueError:
-            raise PlantError(f"bad position in object spec {spec!r}") from None
-        if len(position) != 3:
-            raise PlantError(f"object position needs x,y,z in {spec!r}")
-        kwargs["position"] = position
-    head, _, argument = body.partition(":")
-    lowered = head.lower()
-    try:
-        if lowered in ("box", "sphere", "cylinder", "capsule"):
-            numbers = [float(v) for v in argument.lower().split("x")] if argument else []
-            if lowered == "box" and len(numbers) == 1:
-                numbers *= 3
-            kwargs["kind"], kwargs["size"] = lowered, numbers
-        elif lowered.endswith(".urdf"):
-            kwargs.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0)
-        elif lowered.endswith((".obj", ".stl")):
-            kwargs.update(kind="mesh", path=head, scale=float(argument) if argument else 1.0)
-        else:
-            raise PlantError(f"unknown object kind in spec {spec!r}: expected box, sphere, cylinder, capsule, *.urdf or *.obj/*.stl")
-        for option in options:
-            name, _, value = option.partition("=")
-            if name not in ("mass", "friction", "scale"):
-                raise PlantError(f"unknown object option {name!r} in spec {spec!r}")
-            kwargs[name] = float(value)
-    except ValueError:
-        raise PlantError(f"bad number in object spec {spec!r}") from None
-    return kwargs

@@ -22,7 +22,8 @@ import pybullet
 from bh8_gym.firmware import Firmware
 from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.loop_interface import LoopInterface
-from bh8_gym.plant import HandPlant, PlantParameters, parse_object_spec
+from bh8_gym.objects import add_object, parse_object_spec
+from bh8_gym.plant import HandPlant, PlantParameters
 from bh8_gym.protocol import FIRMWARE_PROFILES, LINE_END, PROMPT
 
 # The scene `--object` builds (the plant's defaults hold the hand palm-down over a table, as the
@@ -46,11 +47,11 @@ def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False) -
     SPEC strings) the palm-up scene above with each object placed. Raises ValueError naming a bad
     spec (before any physics starts)."""
     placements = []
-    for spec in objects:
+    for text in objects:
         try:
-            placements.append((spec, parse_object_spec(spec)))
+            placements.append((text, parse_object_spec(text)))
         except ValueError as error:
-            raise ValueError(f"object {spec!r}: {error}") from None
+            raise ValueError(f"object {text!r}: {error}") from None
     params = None
     if placements:
         params = PlantParameters(
@@ -58,13 +59,12 @@ def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False) -
         )
     plant = HandPlant(params=params, seed=seed, gui=gui)
     try:
-        for spec, placement in placements:
-            kind, size = placement.pop("kind"), placement.pop("size", None)
+        for text, (spec, position) in placements:
             try:
-                body = plant.add_object(kind, size, **placement)
+                body = add_object(plant, spec, **({} if position is None else {"position": position}))
             except ValueError as error:
-                raise ValueError(f"object {spec!r}: {error}") from None
-            if "position" not in placement:
+                raise ValueError(f"object {text!r}: {error}") from None
+            if position is None:
                 _rest_on_palm(plant, body)
     except BaseException:
         plant.close()

@@ -727,7 +727,8 @@ def test_the_arm_places_the_hand_as_a_top_down_pick_pipeline():
     hand's y axis, F3 opposite F1-F2), the knuckles stop `clearance` above the estimated top
     (within top_error), and never lower than the fingers' sweep plus the margin
     (hand_urdf.FINGER_SWEEP_DEPTH): fingertips clear the table."""
-    from bh8_gym.envs.objects import ObjectSet, ObjectSpec
+    from bh8_gym.envs.objects import ObjectSet
+    from bh8_gym.objects import ObjectSpec
     from bh8_gym.envs.scenes import GraspEpisode, PlacementRanges
     from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT
 

@@ -6,12 +6,13 @@ Sources: manual §5.2.1 (movement commands), §5.3.4 (IOFF, TSTOP, HOLD), §5.5 
 import pytest
 
 from bh8_gym.firmware import Firmware
+from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
 
 PROMPT = b"=> "
 # A fixed post under the palm (palm down at the default wrist pose): the fingers close onto it.
 # Palm face at z = 0.30 − 0.084 m; the post's top is 16 mm below it.
-POST = dict(kind="box", size=(0.06, 0.06, 0.16), position=(0.0, 0.0, 0.12), fixed=True)
+POST = dict(spec=ObjectSpec("box", (0.06, 0.06, 0.16), friction=None), position=(0.0, 0.0, 0.12), fixed=True)
 
 
 def reply_lines(fw: Firmware, line: str) -> list[str]:
@@ -51,7 +52,7 @@ def fw(free_hand):
 @pytest.fixture(scope="module")
 def hand_with_post(tmp_path_factory):
     plant = HandPlant(seed=0)
-    plant.add_object(**POST)
+    add_object(plant, **POST)
     fw = Firmware(plant=plant, store_dir=tmp_path_factory.mktemp("store"), seed=0)
     assert reply_lines(fw, "HI") == []
     snap = fw.snapshot()

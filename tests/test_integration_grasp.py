@@ -15,6 +15,7 @@ import pytest
 
 from bh8_gym import hand_urdf
 from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
+from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
@@ -45,7 +46,7 @@ def grasp_fw(tmp_path):
     plant = HandPlant(seed=0)
     # The knuckle housings stand 15 mm proud of the palm face (hand_urdf): 10 mm above the cylinder.
     plant.set_wrist_pose((0.0, 0.0, WRIST_OVER_CYLINDER), PALM_DOWN, teleport=True)
-    cylinder = plant.add_object("cylinder", (0.03, 0.13), position=(0.0, 0.0, 0.065), mass=0.15)
+    cylinder = add_object(plant, ObjectSpec("cylinder", (0.06, 0.13), mass=0.15, friction=None), position=(0.0, 0.0, 0.065))
     fw = Firmware(plant=plant, store_dir=tmp_path, seed=0)
     command(fw, "HI")
     yield fw, cylinder
@@ -130,8 +131,8 @@ def inner_link_bars(plant: HandPlant, inner_degrees: float) -> None:
         poses[finger] = p.multiplyTransforms(state[4], state[5], (0.04, 0.0185, 0.0), (0, 0, 0, 1))
     plant.set_joint_angles(saved)
     middle = (np.array(poses[1][0]) + np.array(poses[2][0])) / 2.0
-    plant.add_object("box", (0.012, 0.012, 0.08), position=middle, orientation=poses[1][1], fixed=True)
-    plant.add_object("box", (0.012, 0.012, 0.04), position=poses[3][0], orientation=poses[3][1], fixed=True)
+    add_object(plant, ObjectSpec("box", (0.012, 0.012, 0.08), friction=None), position=middle, orientation=poses[1][1], fixed=True)
+    add_object(plant, ObjectSpec("box", (0.012, 0.012, 0.04), friction=None), position=poses[3][0], orientation=poses[3][1], fixed=True)
 
 
 @pytest.fixture

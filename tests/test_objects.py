@@ -14,12 +14,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bh8_gym.envs.objects import (
-    ObjectLoader,
     ObjectSet,
-    ObjectSpec,
     PrimitiveRanges,
     object_family,
-    parse_object_file,
     primitive_size_cells,
     primitive_split,
     RandomUrdfRanges,
@@ -27,6 +24,7 @@ from bh8_gym.envs.objects import (
     random_urdf_spec,
     sample_primitive,
 )
+from bh8_gym.objects import ObjectLoader, ObjectSpec, parse_object_file
 
 
 @pytest.fixture

@@ -18,9 +18,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bh8_gym.envs.objects import ObjectLoader, ObjectSpec
 from bh8_gym.meshes import MeshError, mesh_bounds
-from bh8_gym.plant import HandPlant, PlantError, PlantParameters, parse_object_spec
+from bh8_gym.objects import ObjectError, ObjectLoader, ObjectSpec, add_object, parse_object_spec, remove_object
+from bh8_gym.plant import HandPlant, PlantParameters
 
 FUZZ = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
@@ -35,7 +35,7 @@ numbers = st.one_of(
 @st.composite
 def object_specs(draw) -> str:
     kind = draw(st.sampled_from(["box", "sphere", "cylinder", "capsule", "cone", "BOX", ""]))
-    sizes = "x".join(draw(st.lists(numbers, min_size=0, max_size=4)))
+    sizes = draw(st.sampled_from(["", "d", "r"])) + "x".join(draw(st.lists(numbers, min_size=0, max_size=4)))
     spec = f"{kind}:{sizes}" if draw(st.booleans()) or sizes else kind
     if draw(st.booleans()):
         spec += "@" + ",".join(draw(st.lists(numbers, min_size=2, max_size=4)))
@@ -64,17 +64,17 @@ def _finite_after_steps(plant: HandPlant, body: int, steps: int = 25) -> None:
 @FUZZ
 @given(spec=object_specs())
 def test_any_object_spec_is_refused_or_simulates_finitely(palm_up_plant, spec):
-    """`--object SPEC` (parse_object_spec, then HandPlant.add_object): a PlantError (a ValueError)
-    naming the problem, or an object whose world stays finite."""
+    """`--object SPEC` (parse_object_spec, then add_object): an ObjectError (a ValueError) naming the
+    problem, or an object whose world stays finite."""
     try:
-        kwargs = parse_object_spec(spec)
-        body = palm_up_plant.add_object(kwargs.pop("kind"), kwargs.pop("size", None), **kwargs)
-    except PlantError:
+        placement = parse_object_spec(spec)
+        body = add_object(palm_up_plant, placement.spec, placement.position or (0.0, 0.0, 0.1))
+    except ObjectError:
         return
     try:
         _finite_after_steps(palm_up_plant, body)
     finally:
-        palm_up_plant.remove_object(body)
+        remove_object(palm_up_plant, body)
 
 
 @pytest.fixture(scope="module")

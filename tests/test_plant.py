@@ -10,7 +10,8 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from bh8_gym.plant import HandPlant, PlantError, PlantParameters, parse_object_spec
+from bh8_gym.objects import ObjectError, ObjectPlacement, ObjectSpec, add_object, add_object_from_spec, parse_object_spec
+from bh8_gym.plant import HandPlant, PlantError, PlantParameters
 
 MCV_100 = 100 / 16 / 256e-6  # counts/s: 6.25 counts per 256 µs sample (SPEC §4)
 MCV_40 = 40 / 16 / 256e-6
@@ -51,7 +52,7 @@ def obstacle_on_inner_link(plant, inner_degrees=60.0):
     position, orientation = link_pose(plant, "f3_inner")
     centre, _ = p.multiplyTransforms(position, orientation, (0.040, 0.0185, 0.0), (0, 0, 0, 1))
     plant.set_joint_angles(saved)
-    return plant.add_object("sphere", 0.008, position=centre, fixed=True)
+    return add_object(plant, ObjectSpec("sphere", (0.016,), friction=None), position=centre, fixed=True)
 
 
 @pytest.fixture
@@ -146,7 +147,7 @@ def test_blocked_outer_link_stalls_the_whole_finger(plant):
     position, orientation = link_pose(plant, "f3_tip")
     centre, _ = p.multiplyTransforms(position, orientation, (0.0, 0.0, 0.013), (0, 0, 0, 1))
     plant.set_joint_angles(plant.joint_angles() * 0.0)
-    plant.add_object("sphere", 0.012, position=centre, fixed=True)
+    add_object(plant, ObjectSpec("sphere", (0.024,), friction=None), position=centre, fixed=True)
     init_finger(plant, 3)
     plant.set_drive(3, MCV_100, 1.0)
     run(plant, 1.0)
@@ -267,7 +268,7 @@ def test_fingers_at_full_spread_close_without_touching(plant):
 
 def test_save_restore_reproduces_a_trajectory_exactly(plant):
     """Contract 1: restore_state returns PyBullet and the plant's own state, so a trajectory repeats exactly."""
-    plant.add_object("box", (0.05, 0.05, 0.05), position=(0.0, 0.0, 0.16), mass=0.2)
+    add_object(plant, ObjectSpec("box", (0.05, 0.05, 0.05), mass=0.2, friction=None), position=(0.0, 0.0, 0.16))
     obstacle_on_inner_link(plant)
     run(plant, 0.1)
     state = plant.save_state()
@@ -298,12 +299,12 @@ def test_bad_arguments_raise_plant_error(plant):
         plant.set_drive(1, float("nan"), 1.0)
     with pytest.raises(PlantError):
         plant.set_drives([0.0] * 3, [1.0] * 3)
-    with pytest.raises(PlantError, match="teapot"):
-        plant.add_object("teapot", 0.1)
-    with pytest.raises(PlantError):
-        plant.add_object("box", (0.1, -0.1, 0.1))
-    with pytest.raises(PlantError, match="missing.urdf"):
-        plant.add_object("urdf", path="missing.urdf")
+    with pytest.raises(ObjectError, match="teapot"):
+        ObjectSpec("teapot", (0.1,))
+    with pytest.raises(ObjectError):
+        ObjectSpec("box", (0.1, -0.1, 0.1))
+    with pytest.raises(ObjectError, match="missing.urdf"):
+        add_object(plant, ObjectSpec("urdf", path="missing.urdf"))
     with pytest.raises(PlantError):
         plant.set_wrist_pose((0, 0, 0.3), (0, 0, 0, 2))
     with pytest.raises(PlantError, match="time_step"):
@@ -316,12 +317,13 @@ def test_objects_from_specs_and_urdf_scaling(plant):
     """add_object handles primitives, URDF files with globalScaling, and the command-line spec syntax."""
     import pybullet_data
 
-    assert parse_object_spec("box:0.05x0.05x0.08@0,0,0.12;mass=0.2") == dict(
-        kind="box", size=[0.05, 0.05, 0.08], position=[0.0, 0.0, 0.12], mass=0.2
+    assert parse_object_spec("box:0.05x0.05x0.08@0,0,0.12;mass=0.2") == ObjectPlacement(
+        ObjectSpec("box", (0.05, 0.05, 0.08), mass=0.2, friction=None), (0.0, 0.0, 0.12)
     )
-    sphere = plant.add_object_from_spec("sphere:0.03@0.3,0,0.05")
-    capsule = plant.add_object("capsule", (0.02, 0.06), position=(0.3, 0.2, 0.1))
-    cube = plant.add_object("urdf", path=f"{pybullet_data.getDataPath()}/cube_small.urdf", scale=2.0, position=(-0.3, 0, 0.1))
+    sphere = add_object_from_spec(plant, "sphere:d0.06@0.3,0,0.05")
+    capsule = add_object(plant, ObjectSpec("capsule", (0.04, 0.10), friction=None), position=(0.3, 0.2, 0.1))
+    cube = add_object(plant, ObjectSpec("urdf", path=f"{pybullet_data.getDataPath()}/cube_small.urdf", scale=2.0, friction=None),
+                      position=(-0.3, 0, 0.1))
     run(plant, 0.5)
     assert plant.object_pose(sphere)[0][2] == pytest.approx(0.03, abs=0.003)  # resting on the table
     assert plant.object_pose(cube)[0][2] == pytest.approx(0.05, abs=0.005)  # 5 cm cube scaled x2 -> 10 cm

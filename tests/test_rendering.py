@@ -26,7 +26,7 @@ def _frames(count: int, height: int = 48, width: int = 64) -> list[np.ndarray]:
 
 def test_bh8_render_writes_a_png_of_the_hand_closed_on_an_object(tmp_path, capsys):
     path = tmp_path / "closed.png"
-    code = main(["render", "--closed", "--object", "cylinder:0.03x0.10", "--width", "160", "--height", "120",
+    code = main(["render", "--closed", "--object", "cylinder:d0.06x0.10", "--width", "160", "--height", "120",
                  "-o", str(path)])
     assert code == 0, capsys.readouterr()
     picture = imageio.imread(path)

@@ -320,7 +320,8 @@ _CRASHING_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 999999\n"
 
 
 @pytest.mark.parametrize("spec, message", [
-    ("sphere:1e308", "each extent must be 0.001 to 2 m"),
+    ("sphere:d1e308", "each extent must be 0.001 to 2 m"),
+    ("sphere:0.03", "d<diameter> or r<radius>"),
     ("box:1e300x1e300x1e300", "each extent must be"),
     ("box:0.05;mass=1e300", "mass must be 0.001 to 10 kg"),
     ("box:0.05;friction=1e300", "friction must be 0 to 10"),

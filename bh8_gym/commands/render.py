@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.cli import integer_argument
-from bh8_gym.plant import HandPlant, PlantError, PlantParameters
+from bh8_gym.objects import OBJECT_SPEC_HELP, ObjectError, add_object_from_spec
+from bh8_gym.plant import HandPlant, PlantParameters
 from bh8_gym.rendering import DEFAULT_CAMERA, Camera, camera_for, collision_frame, render_frame, save_png
 
 
@@ -22,8 +23,6 @@ def close_hand(plant, seconds: float = 1.5, velocity: float = 24_414.0, torque_f
         plant.set_drive_off(motor)
 
 
-
-
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", "-o", type=Path, default=Path("hand.png"),
                         help="PNG file to write (default: %(default)s)")
@@ -34,7 +33,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spread", type=float, default=0.0, help="spread angle, degrees (0-180; default: %(default)s)")
     parser.add_argument(
         "--object", action="append", default=[], metavar="SPEC",
-        help="add an object, e.g. box:0.05x0.05x0.08@0,0,0.04 or sphere:0.035 or model.urdf:1.5 (repeatable; default: none)",
+        help="add an object (repeatable; default: none): " + OBJECT_SPEC_HELP,
     )
     parser.add_argument("--wrist-height", type=float, default=None,
                         help="wrist height above the table, m (palm down; default: 0.3, or 0.2 with --object)")
@@ -73,8 +72,8 @@ def run(args) -> int:
     with HandPlant(params=params, seed=args.seed) as plant:
         try:
             for spec in args.object:
-                plant.add_object_from_spec(spec)
-        except PlantError as error:
+                add_object_from_spec(plant, spec)
+        except ObjectError as error:
             print(f"bh8 render: {error}", file=sys.stderr)
             return 2
         plant.set_drive(4, 14_648.0 if args.spread > 0 else -14_648.0, 1.0)

@@ -32,6 +32,7 @@ import gymnasium as gym
 from bh8_gym.cli import handling_signals, integer_argument, json_object_argument
 from bh8_gym.envs import register_envs
 from bh8_gym.nvstore import StoreError, StoreWarning
+from bh8_gym.objects import OBJECT_SPEC_HELP
 from bh8_gym.protocol import FIRMWARE_PROFILES
 from bh8_gym.rendering import display_available
 from bh8_gym.simulator import build_firmware, shutdown_firmware
@@ -42,13 +43,6 @@ def default_state_dir() -> Path:
     """The per-user non-volatile store: $XDG_DATA_HOME/bh8-gym/state, else ~/.local/share/..."""
     base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
     return Path(base) / "bh8-gym" / "state"
-
-
-OBJECT_SPEC_HELP = (
-    "box:WxDxH, sphere:R, cylinder:RxL, capsule:RxL (metres), FILE.urdf[:SCALE] or "
-    "FILE.obj|stl[:SCALE], optionally @X,Y,Z (hand frame: wrist at the origin, z out of the palm; "
-    "default: resting on the palm centre) and ;mass=M;friction=F (syntax: bh8_gym.plant.parse_object_spec)"
-)
 
 
 def build_env_firmware(env_id: str, seed: int, env_kwargs: dict | None = None, gui: bool = False):

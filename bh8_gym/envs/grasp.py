@@ -6,10 +6,11 @@ from typing import Sequence
 from bh8_gym.envs.arm import ArmSchedule
 from bh8_gym.envs.base import BH8LoopEnv
 from bh8_gym.envs.interfaces import grasp_interface
-from bh8_gym.envs.objects import ObjectSet, ObjectSpec
+from bh8_gym.envs.objects import ObjectSet
 from bh8_gym.envs.randomization import RandomizationRanges
 from bh8_gym.envs.scenes import PlacementRanges
 from bh8_gym.envs.tasks import GraspRewardWeights, GraspTask
+from bh8_gym.objects import ObjectSpec
 from bh8_gym.settings import dataclass_from
 
 

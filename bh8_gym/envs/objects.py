@@ -1,10 +1,10 @@
-"""Graspable objects for the environments: procedural primitives, pybullet_data's random URDFs, user files.
+"""The environments' object SETS and their SPLITS: procedural primitives, pybullet_data's random
+URDFs, user files. What one object is, its spec strings, checks and loading are `bh8_gym.objects`
+(sizes are full extents everywhere).
 
-An `ObjectSpec` describes one object (shape, size, mass, friction); an `ObjectSet` samples specs with
-the environment's `np_random`; an `ObjectLoader` turns a spec into a PyBullet body, caching the
-collision and visual shapes so that an object seen before costs one `createMultiBody` (about 0.2 ms)
-instead of a file load (1-8 ms). Bodies themselves are not cached: the environments reset with
-PyBullet `restoreState`, which needs exactly the bodies that existed at `saveState`, so each
+An `ObjectSet` samples the `ObjectSpec` of each episode with the environment's `np_random`; the
+scene loads it with `bh8_gym.objects.ObjectLoader`. Bodies are not cached: the environments reset
+with PyBullet `restoreState`, which needs exactly the bodies that existed at `saveState`, so each
 episode's object is created after the restore and removed before the next one.
 
 Sizes are graspable by the BH8-262 (manual App. A: fingers 70 + 50 mm long; the palm spans the
@@ -31,16 +31,8 @@ train (learning), validation (model selection, early stopping, tuning) and test 
 `object_family(spec)` names an object's family for reports: "random_urdf", the primitive's kind,
 or "file".
 
-User objects: `parse_object_file` / `ObjectSet.from_files` take URDF files (optionally with a
-global scale) and meshes (OBJ/STL with a scale and a mass); see `parse_object_file`. Every object
-stays within the plant's bounds (`bh8_gym.plant.OBJECT_EXTENT_RANGE_M`, `OBJECT_MASS_RANGE_KG`,
-`OBJECT_FRICTION_MAX`), and every mesh is read by `bh8_gym.meshes` before PyBullet sees it (a bad
-face index crashes PyBullet's reader): a bad spec or file raises a ValueError naming it, at
-`parse_object_file` for user files and again before loading.
-
-PyBullet never frees a collision shape (it refuses to remove one a body has used), so each new
-shape stays in memory for the life of the PyBullet client; `ObjectLoader.shapes_created` counts
-them, and the environments build a fresh world when it passes `envs.base.WORLD_SHAPE_LIMIT`.
+User objects: `ObjectSet.from_files` takes URDF files (optionally with a global scale) and meshes
+(OBJ/STL with a scale and a mass), `bh8_gym.objects.parse_object_file`.
 """
 from __future__ import annotations
 
@@ -50,77 +42,19 @@ import re
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import numpy as np
 
-from bh8_gym.meshes import MESH_SUFFIXES, mesh_bounds
-from bh8_gym.plant import (
-    OBJECT_FRICTION_MAX,
-    OBJECT_MASS_RANGE_KG,
-    check_loaded_object,
-    check_mesh_file,
-    check_object_extents,
-    check_urdf_file,
-    check_urdf_object,
-    file_errors_named,
-)
+from bh8_gym.meshes import mesh_bounds
+from bh8_gym.objects import PRIMITIVE_KINDS, ObjectSpec, parse_object_file
 
-PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
-FILE_KINDS = ("urdf", "mesh")
 SPLITS = ("train", "validation", "test")
 OBJECT_SETS = ("train", "validation", "test", "primitives-train", "primitives-validation", "primitives-test",
                "mixed", "mixed-validation", "mixed-test", "primitives", "all")
 # Size cells of the procedural primitives (metres), and the share of each kind's cells held out.
 PRIMITIVE_CELL = 0.005
 HELD_OUT_SHARE = {"test": 0.10, "validation": 0.10}
-
-
-@dataclass(frozen=True)
-class ObjectSpec:
-    """One object. Sizes are FULL extents in metres (not half extents).
-
-    kind "box": size = (x, y, z); "cylinder": (diameter, height); "sphere": (diameter,);
-    "capsule": (diameter, total length) lying along z; "urdf": `path` loaded with `scale`
-    (mass/friction None keep the file's values); "mesh": `path` scaled by `scale`, with `mass`.
-    """
-
-    kind: str
-    size: tuple[float, ...] = ()
-    mass: float | None = 0.1
-    friction: float | None = 0.8
-    path: str | None = None
-    scale: float = 1.0
-    name: str = ""
-    rgba: tuple[float, float, float, float] = (0.85, 0.45, 0.15, 1.0)
-
-    def __post_init__(self):
-        if self.kind not in PRIMITIVE_KINDS + FILE_KINDS:
-            raise ValueError(f"object kind must be one of {PRIMITIVE_KINDS + FILE_KINDS}, got {self.kind!r}")
-        expected = {"box": 3, "cylinder": 2, "sphere": 1, "capsule": 2}.get(self.kind)
-        if expected is not None:
-            if len(self.size) != expected or not all(np.isfinite(s) and s > 0 for s in self.size):
-                raise ValueError(f"a {self.kind} needs {expected} positive finite sizes, got {self.size!r}")
-            if self.kind == "capsule" and self.size[1] < self.size[0]:
-                raise ValueError(f"a capsule's length must be at least its diameter, got {self.size!r}")
-            check_object_extents([float(s) for s in self.size], f"a {self.kind} of size {self.size!r}")
-        else:
-            if not self.path:
-                raise ValueError(f"a {self.kind} object needs a file path")
-            if not (np.isfinite(self.scale) and self.scale > 0):
-                raise ValueError(f"object scale must be positive, got {self.scale!r}")
-        low, high = OBJECT_MASS_RANGE_KG
-        if self.mass is not None and not (np.isfinite(self.mass) and low <= self.mass <= high):
-            raise ValueError(f"object mass must be {low:g} to {high:g} kg, got {self.mass!r}")
-        if self.kind != "urdf" and self.mass is None:  # only a URDF carries its own
-            raise ValueError(f"a {self.kind} object needs a mass (kg)")
-        if self.friction is not None and not (np.isfinite(self.friction) and 0 <= self.friction <= OBJECT_FRICTION_MAX):
-            raise ValueError(f"object friction must be 0 to {OBJECT_FRICTION_MAX:g}, got {self.friction!r}")
-
-    @property
-    def shape_key(self) -> tuple:
-        """What determines the collision shape (mass and friction do not)."""
-        return (self.kind, tuple(round(s, 6) for s in self.size), self.path, round(self.scale, 6))
 
 
 @dataclass(frozen=True)
@@ -315,40 +249,6 @@ def object_family(spec: ObjectSpec | None) -> str:
     return "file"
 
 
-def parse_object_file(text: str | os.PathLike | ObjectSpec) -> ObjectSpec:
-    """A user object: an `ObjectSpec`, or "PATH.urdf[:SCALE]" or "PATH.obj:SCALE:MASS_KG[:FRICTION]".
-
-    Meshes need a scale (file units to metres) and a mass (kg); URDFs carry their own mass.
-    """
-    if isinstance(text, ObjectSpec):
-        return text
-    text = os.fspath(text)
-    path, _, rest = text.partition(":") if not re.match(r"^[A-Za-z]:[\\/]", text) else (text, "", "")
-    fields_ = [f for f in rest.split(":") if f] if rest else []
-    try:
-        numbers = [float(f) for f in fields_]
-    except ValueError:
-        raise ValueError(f"object file spec {text!r}: expected PATH[:SCALE[:MASS[:FRICTION]]] numbers") from None
-    if not Path(path).is_file():
-        raise ValueError(f"object file {path!r} does not exist")
-    suffix = Path(path).suffix.lower()
-    if suffix == ".urdf":
-        if len(numbers) > 1:
-            raise ValueError(f"object file spec {text!r}: a URDF takes at most a scale")
-        spec = ObjectSpec(kind="urdf", path=str(Path(path).resolve()), scale=numbers[0] if numbers else 1.0,
-                          mass=None, friction=None, name=Path(path).stem)
-        check_urdf_object(spec.path, spec.scale)
-        return spec
-    if suffix in MESH_SUFFIXES:
-        if len(numbers) not in (2, 3):
-            raise ValueError(f"mesh spec {text!r} needs PATH:SCALE:MASS_KG[:FRICTION]")
-        spec = ObjectSpec(kind="mesh", path=str(Path(path).resolve()), scale=numbers[0], mass=numbers[1],
-                          friction=numbers[2] if len(numbers) == 3 else 0.8, name=Path(path).stem)
-        check_mesh_file(spec.path, spec.scale)
-        return spec
-    raise ValueError(f"object file {path!r}: expected .urdf or a mesh ({', '.join(MESH_SUFFIXES)})")
-
-
 @dataclass
 class ObjectSet:
     """Samples the object of an episode. Build with `ObjectSet.named(...)` or `ObjectSet.from_files(...)`."""
@@ -396,77 +296,3 @@ class ObjectSet:
         if not self.urdf_names or rng.random() < self.primitive_weight:
             return sample_primitive(rng, self.primitive_ranges, self.primitive_split)
         return random_urdf_spec(self.urdf_names[int(rng.integers(len(self.urdf_names)))], rng, self.urdf_ranges)
-
-
-class ObjectLoader:
-    """Creates object bodies in one PyBullet client, caching shapes by `ObjectSpec.shape_key`.
-
-    `shapes_created` counts the shapes made: PyBullet keeps each until its client disconnects."""
-
-    def __init__(self, client: int, visuals: bool = True):
-        import pybullet
-
-        self._p = pybullet
-        self.client = client
-        self.visuals = visuals
-        self._shapes: dict[tuple, tuple[int, int]] = {}
-        self.shapes_created = 0
-
-    def _shapes_for(self, spec: ObjectSpec) -> tuple[int, int]:
-        cached = self._shapes.get(spec.shape_key)
-        if cached is not None:
-            return cached
-        p = self._p
-        if spec.kind == "mesh":
-            check_mesh_file(spec.path, spec.scale)  # PyBullet's reader crashes on a bad face index
-        if spec.kind == "box":
-            geometry = dict(shapeType=p.GEOM_BOX, halfExtents=[s / 2 for s in spec.size])
-        elif spec.kind == "cylinder":
-            geometry = dict(shapeType=p.GEOM_CYLINDER, radius=spec.size[0] / 2, height=spec.size[1])
-        elif spec.kind == "sphere":
-            geometry = dict(shapeType=p.GEOM_SPHERE, radius=spec.size[0] / 2)
-        elif spec.kind == "capsule":
-            geometry = dict(shapeType=p.GEOM_CAPSULE, radius=spec.size[0] / 2, height=spec.size[1] - spec.size[0])
-        else:
-            geometry = dict(shapeType=p.GEOM_MESH, fileName=spec.path, meshScale=[spec.scale] * 3)
-        with file_errors_named(spec.kind, spec.path):
-            collision = p.createCollisionShape(physicsClientId=self.client, **geometry)
-        if collision < 0:
-            raise ValueError(f"PyBullet could not build a collision shape for {spec!r}")
-        visual = -1
-        if self.visuals:
-            visual_geometry = dict(geometry)
-            if spec.kind == "cylinder" or spec.kind == "capsule":
-                visual_geometry["length"] = visual_geometry.pop("height")
-            visual = p.createVisualShape(rgbaColor=spec.rgba, physicsClientId=self.client, **visual_geometry)
-        self._shapes[spec.shape_key] = (collision, visual)
-        self.shapes_created += 1
-        return collision, visual
-
-    def create(self, spec: ObjectSpec, position: Sequence[float], orientation: Sequence[float]) -> int:
-        """A body for `spec` at a pose (base frame = the shape's centre for primitives and meshes)."""
-        p = self._p
-        if spec.kind == "urdf":
-            check_urdf_file(spec.path)
-            with file_errors_named(spec.kind, spec.path):
-                body = p.loadURDF(spec.path, position, orientation, globalScaling=spec.scale, physicsClientId=self.client)
-            self.shapes_created += 1  # its own shapes, kept by PyBullet as ours are
-            try:
-                check_loaded_object(self.client, body, f"URDF {spec.path!r} at scale {spec.scale:g}")
-            except ValueError:
-                p.removeBody(body, physicsClientId=self.client)
-                raise
-        else:
-            collision, visual = self._shapes_for(spec)
-            body = p.createMultiBody(spec.mass, collision, visual, position, orientation, physicsClientId=self.client)
-        dynamics = {}
-        if spec.mass is not None and spec.kind == "urdf":
-            dynamics["mass"] = spec.mass
-        if spec.friction is not None:
-            dynamics["lateralFriction"] = spec.friction
-        if dynamics:
-            p.changeDynamics(body, -1, physicsClientId=self.client, **dynamics)
-        return body
-
-    def remove(self, body: int) -> None:
-        self._p.removeBody(body, physicsClientId=self.client)

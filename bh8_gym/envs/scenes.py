@@ -25,8 +25,9 @@ from math import cos, pi, radians, sin
 import numpy as np
 
 from bh8_gym.envs.arm import ArmSchedule
-from bh8_gym.envs.objects import ObjectLoader, ObjectSet, ObjectSpec
+from bh8_gym.envs.objects import ObjectSet
 from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT, PALM_TOP
+from bh8_gym.objects import ObjectLoader, ObjectSpec
 
 # Quaternion (x, y, z, w) turning the wrist frame's z axis (out through the palm, §9.5) to world -z.
 WRIST_PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
