@@ -9,6 +9,8 @@ Gaussian policies. The heavy modules (PyBullet, the firmware) load only when an 
 """
 from __future__ import annotations
 
+from gymnasium.envs.registration import register, registry
+
 # Safety nets: the environments end episodes themselves on their simulated clock (grasp: the arm
 # schedule, 2.0 s; reach: episode_seconds, 1.0 s), which at 38400 baud is 309 and 215 steps.
 # These limits only bind if a user makes episodes longer than their defaults allow.
@@ -20,8 +22,6 @@ ENV_IDS = ("BH8Grasp-v0", "BH8FingerReach-v0")
 
 def register_envs() -> None:
     """Register the bh8-gym environments with Gymnasium (idempotent)."""
-    from gymnasium.envs.registration import register, registry
-
     if "BH8Grasp-v0" not in registry:
         register(
             id="BH8Grasp-v0",

@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
+import pybullet_data
 
 from bh8_gym.meshes import mesh_bounds
 from bh8_gym.objects import PRIMITIVE_KINDS, ObjectSpec, parse_object_file
@@ -85,8 +86,6 @@ class RandomUrdfRanges:
 
 
 def random_urdf_root() -> Path:
-    import pybullet_data
-
     return Path(pybullet_data.getDataPath()) / "random_urdfs"
 
 

@@ -23,9 +23,18 @@ from dataclasses import dataclass, field
 from math import cos, pi, radians, sin
 
 import numpy as np
+import pybullet
+from gymnasium.utils import seeding
 
 from bh8_gym.envs.arm import ArmSchedule
 from bh8_gym.envs.objects import ObjectSet
+from bh8_gym.envs.randomization import (
+    PlantRandomizer,
+    RandomizationRanges,
+    physics_generator,
+    sample_plant_parameters,
+    sample_processing_time,
+)
 from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.objects import ObjectLoader, ObjectSpec
 
@@ -93,8 +102,6 @@ class GraspScene:
         arm: ArmSchedule = ArmSchedule(),
         visuals: bool = True,
     ):
-        import pybullet
-
         self._p = pybullet
         self.plant = plant
         self.client = plant.client
@@ -292,16 +299,6 @@ def scene_for_seed(
     This gives the env's world, not its firmware state: `bh8 serve --env ID --seed N` serves the
     env's own firmware instead (`BH8LoopEnv.prepare_episode` on LOOP entry), which is byte-exact.
     """
-    from gymnasium.utils import seeding
-
-    from bh8_gym.envs.randomization import (
-        PlantRandomizer,
-        RandomizationRanges,
-        physics_generator,
-        sample_plant_parameters,
-        sample_processing_time,
-    )
-
     ranges = ranges or RandomizationRanges()
     rng, _ = seeding.np_random(seed)
     scene = build_scene(env_id, plant, options)
