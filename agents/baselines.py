@@ -74,7 +74,8 @@ class LoopBaseline:
             else:
                 value = (self.close_velocity if spread_ready else 0) if name == "LCV" else self.gain
             self._bytes[index] = value
-        return bytes_to_unit(self._bytes, self._low, self._high)
+        # within the env's byte space (the safety envelope clamps LCV): the action the env will run
+        return bytes_to_unit(np.clip(self._bytes, self._low, self._high), self._low, self._high)
 
 
 class SupervisoryBaseline:
@@ -213,18 +214,21 @@ class SqueezeBaseline:
             else:
                 value = self.close_velocity if name == "LCV" else self.close_gain
             self._bytes[index] = value
-        return bytes_to_unit(self._bytes, self._low, self._high)
+        # within the env's byte space (the safety envelope clamps LCV): the action the env will run
+        return bytes_to_unit(np.clip(self._bytes, self._low, self._high), self._low, self._high)
 
 
 BASELINES = ("supervisory", "loop", "squeeze")
+LOOP_BASELINES = ("loop", "squeeze")  # policies on the env's action space: act(observation, info)
 
 
-def make_baseline(name: str, env):
-    """One of BASELINES for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
-    if name == "supervisory":
-        return SupervisoryBaseline(env)
-    if name == "loop":
-        return LoopBaseline(env)
-    if name == "squeeze":
-        return SqueezeBaseline(env)
-    raise ValueError(f"baseline must be one of {BASELINES}, got {name!r}")
+def make_baseline(name: str, env, **settings):
+    """One of BASELINES for `env` (a ContinuousActions-wrapped BH8Grasp env); `settings` are the
+    class's keyword arguments (a TypeError names a wrong one)."""
+    classes = {"supervisory": SupervisoryBaseline, "loop": LoopBaseline, "squeeze": SqueezeBaseline}
+    if name not in classes:
+        raise ValueError(f"unknown baseline {name!r} (known: {', '.join(BASELINES)})")
+    try:
+        return classes[name](env, **settings)
+    except TypeError as error:
+        raise ValueError(f"baseline {name!r}: {error}") from None

@@ -34,6 +34,11 @@ class EvaluationCallback(BaseCallback):
         if state.get("next_evaluation", 0) <= 0:
             state["next_evaluation"] = eval_freq
 
+    def _on_training_start(self) -> None:
+        # A warm-started model ([pretrain]) is a candidate before RL changes it.
+        if self.trainer.pretrain is not None and self.num_timesteps == 0 and self.state["best_success_rate"] is None:
+            self.evaluate()
+
     def _on_step(self) -> bool:
         if self.num_timesteps >= self.state["next_evaluation"]:
             self.evaluate()

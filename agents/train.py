@@ -43,6 +43,7 @@ import gymnasium as gym
 
 from bh8_gym.agents.env_factory import EnvFactory, make_env
 from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
+from bh8_gym.agents.pretrain import PretrainSettings, clone, record
 from bh8_gym.agents.run_files import (
     BEST_MODEL_FILE,
     copy_atomic,
@@ -108,8 +109,16 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     return config
 
 
-
-
+def _pretrain_settings(config: dict):
+    """The config's [pretrain] table (agents/pretrain.py), checked; None without one."""
+    if "pretrain" not in config:
+        return None
+    if config["algorithm"] != "PPO":
+        raise TrainingError("[pretrain] warm-starts an actor-critic: it needs PPO")
+    try:
+        return PretrainSettings.from_table(dict(config["pretrain"]))
+    except (TypeError, ValueError) as error:
+        raise TrainingError(str(error)) from None
 
 
 def read_run_json(path: Path) -> dict:
@@ -217,6 +226,7 @@ class Trainer:
             raise TrainingError("asymmetric_critic gives the critic privileged observations itself; "
                                 "remove privileged from env_kwargs (the actor must not see them)")
         _check_config(config)
+        self.pretrain = _pretrain_settings(config)
         self.out_dir = Path(out_dir)
         self.n_envs = int(n_envs if n_envs is not None else config["train"].get("n_envs", os.cpu_count() or 1))
         if self.n_envs < 1:
@@ -273,6 +283,18 @@ class Trainer:
         return algorithm(policy, env, seed=self.seed, device="cpu", verbose=self.verbose,
                          tensorboard_log=str(self.out_dir / "tb"), policy_kwargs=policy_kwargs,
                          **_hyperparameters(self.config))
+
+    def _warm_start(self, model) -> None:
+        """[pretrain]: clone the scripted grasp into the new model; pretrain.json says how well."""
+        env_kwargs = dict(self.config["env_kwargs"])
+        if self.asymmetric_critic:
+            env_kwargs["privileged"] = True  # the same observations as the training envs
+        demonstrations = record(self.config["env_id"], env_kwargs, self.pretrain, gamma=float(model.gamma))
+        losses = clone(model, demonstrations, self.pretrain, seed=self.seed)
+        write_json_atomic(self.out_dir / "pretrain.json", {
+            "baseline": self.pretrain.baseline, "baseline_kwargs": self.pretrain.baseline_kwargs,
+            "episodes": demonstrations.episodes, "successes": demonstrations.successes,
+            "steps": int(len(demonstrations.actions)), **losses})
 
     def _resume_model(self, env):
         algorithm = _algorithm_class(self.config["algorithm"])
@@ -406,6 +428,8 @@ class Trainer:
             env = self._vec_env()
             try:
                 model = self._resume_model(env) if resume else self._new_model(env)
+                if self.pretrain is not None and not resume:
+                    self._warm_start(model)
                 remaining = total_timesteps - model.num_timesteps
                 if remaining <= 0:
                     return {**state, "num_timesteps": int(model.num_timesteps)}

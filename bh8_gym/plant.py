@@ -657,6 +657,7 @@ class HandPlant:
         dt, coupling_play = self.dt, self._coupling_play
         drive_on, drive_velocity, drive_fraction = state.drive_on, state.drive_velocity, state.drive_fraction
         locked_fingers, engaged, drive_capacity, at_stop = state.locked, state.engaged, state.drive_capacity, state.at_stop
+        targets = state.target_velocities  # last step's, until drive_worm sets this step's
         for f, i2, i3 in FINGER_JOINTS:
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
@@ -692,7 +693,16 @@ class HandPlant:
                     # Neither joint runs ahead of the other by more than the gear's play: a link held
                     # back stops its partner (the whole finger stalls), however fast the motor is told
                     # to turn. The coupling correction may slow a joint, never turn it against the drive.
+                    # A partner counts as held back when it ran at less than half the speed it was told
+                    # last step (an obstacle); otherwise it goes on at its own share of the drive. (Its
+                    # speed alone would make the two joints take turns: each one's room the other's
+                    # last speed, zero when the other had no room, a limit cycle of two steps.)
                     partner_inner, partner_outer = sign * w[i2], sign * w[i3]  # how fast each partner is going along
+                    told_inner, told_outer = sign * targets[i2], sign * targets[i3]
+                    if partner_inner >= 0.5 * told_inner and sign * inner_target > partner_inner:
+                        partner_inner = sign * inner_target
+                    if partner_outer >= 0.5 * told_outer and sign * outer_target > partner_outer:
+                        partner_outer = sign * outer_target
                     inner_room = 3.0 * (partner_outer if partner_outer > 0.0 else 0.0) + (coupling_play - sign * ahead) / dt
                     outer_room = ((partner_inner if partner_inner > 0.0 else 0.0) + (coupling_play + sign * ahead) / dt) * _THIRD
                     if sign * inner_target > inner_room:

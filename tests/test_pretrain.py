@@ -1,0 +1,102 @@
+"""Warm start from a scripted grasp ([pretrain], agents/pretrain.py): the config is checked before
+anything runs, the cloned actor acts like the script on its own demonstrations, and a warm-started
+run evaluates the cloned policy at step 0 so it can be kept as the best model."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+GRASP = "BH8Grasp-v0"
+
+
+def _grasp_config(pretrain: dict) -> dict:
+    from bh8_gym.agents.train import default_config_path, load_config
+
+    config = load_config(default_config_path("PPO", GRASP))
+    config["env_kwargs"] = {"object_set": "primitives-train", "randomize": False}
+    config["eval_env_kwargs"] = {"object_set": "primitives-validation", "randomize": False}
+    config["hyperparameters"].update(n_steps=128, batch_size=64, n_epochs=1)
+    config["policy_kwargs"]["net_arch"] = [32, 32]
+    config["eval"].update(freq=10_000, episodes=2)
+    config["train"]["checkpoint_freq"] = 10_000
+    config["pretrain"] = pretrain
+    return config
+
+
+@pytest.mark.parametrize("table, message", [
+    ({"baseline": "squeeze", "episodez": 3}, "has no episodez"),
+    ({"baseline": "supervisory"}, "a LOOP policy"),
+    ({"baseline": "nonsense"}, "a LOOP policy"),
+    ({"episodes": 0}, "episodes must be at least 1"),
+    ({"learning_rate": -1.0}, "learning_rate must be positive"),
+])
+def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, message):
+    from bh8_gym.agents.train import Trainer, TrainingError
+
+    with pytest.raises(TrainingError, match=message):
+        Trainer(_grasp_config(table), tmp_path / "run", n_envs=1, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_pretrain_needs_ppo(tmp_path):
+    from bh8_gym.agents.train import Trainer, TrainingError
+
+    config = _grasp_config({})
+    config["algorithm"] = "SAC"
+    config["asymmetric_critic"] = False
+    config["hyperparameters"] = {}
+    with pytest.raises(TrainingError, match="needs PPO"):
+        Trainer(config, tmp_path / "run", n_envs=1, progress=False)
+
+
+def test_cloned_actor_acts_like_the_script_on_its_demonstrations():
+    """After cloning, the policy's deterministic action is much closer to the squeeze script's than
+    before (the script's bytes, in the float action space), and the critic has moved towards the
+    demonstrations' returns."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.pretrain import PretrainSettings, clone, record
+
+    settings = PretrainSettings(baseline="squeeze", episodes=2, epochs=40, seed=5)
+    kwargs = {"object_set": "primitives-train", "randomize": False}
+    demonstrations = record(GRASP, kwargs, settings, gamma=0.99)
+    assert demonstrations.observations.shape[0] == demonstrations.actions.shape[0] == demonstrations.returns.shape[0]
+    assert demonstrations.observations.shape[0] > 400  # two whole episodes of ~300 cycles
+    assert np.all(np.abs(demonstrations.actions) <= 1.0 + 1e-6)  # the float action space
+    env = make_env(GRASP, kwargs)
+    try:
+        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [64, 64]})
+    finally:
+        env.close()
+
+    def errors():
+        with torch.no_grad():
+            observations = torch.as_tensor(demonstrations.observations)
+            mean = model.policy.get_distribution(observations).distribution.mean.numpy()
+            values = model.policy.predict_values(observations).numpy().ravel()
+        return (float(np.mean((mean - demonstrations.actions) ** 2)),
+                float(np.mean((values - demonstrations.returns) ** 2)))
+
+    actor_before, value_before = errors()
+    losses = clone(model, demonstrations, settings, seed=0)
+    actor_after, value_after = errors()
+    assert actor_after < 0.25 * actor_before, (actor_before, actor_after)
+    assert value_after < value_before, (value_before, value_after)
+    assert losses["actor_mse"] == pytest.approx(actor_after, rel=0.5)
+
+
+def test_a_warm_started_run_evaluates_the_cloned_policy_at_step_zero(tmp_path):
+    from bh8_gym.agents.run_files import read_evaluations
+    from bh8_gym.agents.train import Trainer
+
+    config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 2})
+    out = tmp_path / "run"
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(128)
+    report = json.loads((out / "pretrain.json").read_text())
+    assert report["episodes"] == 1 and report["steps"] > 200 and report["baseline"] == "squeeze"
+    assert [row["timesteps"] for row in read_evaluations(out)][0] == 0.0
+    assert (out / "best_model.zip").is_file()
