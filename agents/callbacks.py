@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import csv
 
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+from bh8_gym.agents.pretrain import cloning_losses
 
 
 class EvaluationCallback(BaseCallback):
@@ -78,6 +81,43 @@ class EvaluationCallback(BaseCallback):
         if self._env is not None:
             self._env.close()
             self._env = None
+
+
+class KeepDemonstrationsCallback(BaseCallback):
+    """[pretrain] keep_weight: after every rollout, `keep_batches` minibatches of the cloning loss
+    on the script's demonstrations through the policy's own optimizer, weighted
+    keep_weight × keep_decay ** rollouts (from the run's start, so a resumed run goes on decaying)."""
+
+    def __init__(self, demonstrations, settings, rollout_steps: int, seed: int):
+        super().__init__()
+        self.demonstrations = demonstrations
+        self.settings = settings
+        self.rollout_steps = rollout_steps
+        self._rng = np.random.default_rng(seed)
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        import torch
+
+        rollouts_before = max(self.num_timesteps // self.rollout_steps - 1, 0)  # num_timesteps counts this one
+        weight = self.settings.keep_weight * self.settings.keep_decay ** rollouts_before
+        if weight < 1e-4:
+            return
+        policy, demonstrations = self.model.policy, self.demonstrations
+        losses = []
+        for _ in range(self.settings.keep_batches):
+            batch = self._rng.integers(0, len(demonstrations.actions), self.settings.batch_size)
+            actor_loss, _ = cloning_losses(policy, torch.as_tensor(demonstrations.observations[batch]),
+                                           torch.as_tensor(demonstrations.actions[batch]),
+                                           torch.as_tensor(demonstrations.returns[batch]))
+            policy.optimizer.zero_grad()
+            (weight * actor_loss).backward()
+            policy.optimizer.step()
+            losses.append(float(actor_loss.detach()))
+        self.logger.record("pretrain/keep_weight", weight)
+        self.logger.record("pretrain/actor_mse", float(np.mean(losses)))
 
 
 class CheckpointCallback(BaseCallback):
