@@ -3,12 +3,15 @@ a tqdm progress bar (SB3's own bar needs `rich`, which is not a dependency), and
 signal. Named apart from SB3's own CheckpointCallback and ProgressBarCallback, which work otherwise."""
 from __future__ import annotations
 
+import numpy as np
+import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
 from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluate import run_episodes, summarize
+from bh8_gym.agents.pretrain import cloning_losses
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
 
@@ -70,6 +73,41 @@ class EvaluationCallback(BaseCallback):
         if self._env is not None:
             self._env.close()
             self._env = None
+
+
+class KeepDemonstrationsCallback(BaseCallback):
+    """[pretrain] keep_weight: after every rollout, `keep_batches` minibatches of the cloning loss
+    on the script's demonstrations through the policy's own optimizer, weighted
+    keep_weight × keep_decay ** rollouts (from the run's start, so a resumed run goes on decaying)."""
+
+    def __init__(self, demonstrations, settings, rollout_steps: int, seed: int):
+        super().__init__()
+        self.demonstrations = demonstrations
+        self.settings = settings
+        self.rollout_steps = rollout_steps
+        self._rng = np.random.default_rng(seed)
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        rollouts_before = max(self.num_timesteps // self.rollout_steps - 1, 0)  # num_timesteps counts this one
+        weight = self.settings.keep_weight * self.settings.keep_decay ** rollouts_before
+        if weight < 1e-4:
+            return
+        policy, demonstrations = self.model.policy, self.demonstrations
+        losses = []
+        for _ in range(self.settings.keep_batches):
+            batch = self._rng.integers(0, len(demonstrations.actions), self.settings.batch_size)
+            actor_loss, _ = cloning_losses(policy, torch.as_tensor(demonstrations.observations[batch]),
+                                           torch.as_tensor(demonstrations.actions[batch]),
+                                           torch.as_tensor(demonstrations.returns[batch]))
+            policy.optimizer.zero_grad()
+            (weight * actor_loss).backward()
+            policy.optimizer.step()
+            losses.append(float(actor_loss.detach()))
+        self.logger.record("pretrain/keep_weight", weight)
+        self.logger.record("pretrain/actor_mse", float(np.mean(losses)))
 
 
 class RunCheckpointCallback(BaseCallback):

@@ -27,6 +27,7 @@ import numpy as np
 
 from bh8_gym.agents.baselines import LOOP_BASELINES, make_baseline
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.policy_file import atomic_write_npz
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,15 @@ class PretrainSettings:
     batch_size: int = 256
     seed: int = 30_000
     value_weight: float = 0.5
+    #: Gaussian noise (float action units) added to the actions the script's episodes execute, not
+    #: to the recorded ones: the script recovers from the disturbance, so the clone learns to
+    #: recover too instead of failing as soon as RL's exploration moves it off the script's path.
+    action_noise: float = 0.0
+    #: While RL runs, every rollout ends with `keep_batches` minibatches of the cloning loss, weighted
+    #: `keep_weight` × `keep_decay` ** rollouts: RL improves on the script without forgetting it early.
+    keep_weight: float = 0.0
+    keep_decay: float = 0.95
+    keep_batches: int = 8
 
     @classmethod
     def from_table(cls, table: dict[str, Any]) -> PretrainSettings:
@@ -55,6 +65,10 @@ class PretrainSettings:
         for name in ("episodes", "epochs", "batch_size"):
             if int(getattr(settings, name)) < 1:
                 raise ValueError(f"[pretrain] {name} must be at least 1, got {getattr(settings, name)}")
+        if not 0 <= settings.action_noise <= 1:
+            raise ValueError(f"[pretrain] action_noise must be in [0, 1], got {settings.action_noise}")
+        if settings.keep_weight < 0 or not 0 < settings.keep_decay <= 1 or settings.keep_batches < 1:
+            raise ValueError("[pretrain] keep_weight must be >= 0, keep_decay in (0, 1], keep_batches >= 1")
         if not settings.learning_rate > 0:
             raise ValueError(f"[pretrain] learning_rate must be positive, got {settings.learning_rate}")
         return settings
@@ -71,9 +85,25 @@ class Demonstrations:
     episodes: int
 
 
+DEMONSTRATIONS_FILE = "demonstrations.npz"  # in the run directory: a resumed run keeps cloning them
+
+
+def save_demonstrations(path, demonstrations: Demonstrations) -> None:
+    atomic_write_npz(path, {"observations": demonstrations.observations, "actions": demonstrations.actions,
+                            "returns": demonstrations.returns,
+                            "counts": np.array([demonstrations.successes, demonstrations.episodes])})
+
+
+def load_demonstrations(path) -> Demonstrations:
+    with np.load(path, allow_pickle=False) as data:
+        successes, episodes = (int(v) for v in data["counts"])
+        return Demonstrations(data["observations"], data["actions"], data["returns"], successes, episodes)
+
+
 def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: float) -> Demonstrations:
     """Run the scripted grasp for `settings.episodes` episodes on the training env."""
     env = make_env(env_id, env_kwargs)
+    rng = np.random.default_rng(settings.seed)
     try:
         script = make_baseline(settings.baseline, env, **settings.baseline_kwargs)
         observations, actions, returns, successes = [], [], [], 0
@@ -85,7 +115,9 @@ def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: flo
                 action = script.act(observation, info)
                 observations.append(observation)
                 actions.append(action)
-                observation, reward, terminated, truncated, info = env.step(action)
+                if settings.action_noise:
+                    action = np.clip(action + rng.normal(0.0, settings.action_noise, action.shape), -1.0, 1.0)
+                observation, reward, terminated, truncated, info = env.step(action.astype(np.float32))
                 rewards.append(float(reward))
                 done = terminated or truncated
             successes += bool(info.get("is_success"))
@@ -98,6 +130,15 @@ def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: flo
         env.close()
     return Demonstrations(np.asarray(observations, dtype=np.float32), np.asarray(actions, dtype=np.float32),
                           np.concatenate(returns).astype(np.float32), successes, settings.episodes)
+
+
+def cloning_losses(policy, observations, actions, returns):
+    """(actor MSE to the script's actions, value MSE to its discounted returns) on one batch."""
+    import torch
+
+    mean = policy.get_distribution(observations).distribution.mean  # Gaussian and gSDE alike
+    values = policy.predict_values(observations).flatten()
+    return (torch.nn.functional.mse_loss(mean, actions), torch.nn.functional.mse_loss(values, returns))
 
 
 def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, seed: int) -> dict[str, float]:
@@ -119,11 +160,7 @@ def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, see
         actor_sum = value_sum = 0.0
         for start in range(0, count, settings.batch_size):
             batch = order[start:start + settings.batch_size]
-            distribution = policy.get_distribution(observations[batch])
-            mean = distribution.distribution.mean  # Gaussian and gSDE alike: the deterministic action
-            actor_loss = torch.nn.functional.mse_loss(mean, actions[batch])
-            values = policy.predict_values(observations[batch]).flatten()
-            value_loss = torch.nn.functional.mse_loss(values, returns[batch])
+            actor_loss, value_loss = cloning_losses(policy, observations[batch], actions[batch], returns[batch])
             loss = actor_loss + settings.value_weight * value_loss
             optimizer.zero_grad()
             loss.backward()

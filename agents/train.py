@@ -43,7 +43,14 @@ import gymnasium as gym
 
 from bh8_gym.agents.env_factory import EnvFactory, make_env
 from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
-from bh8_gym.agents.pretrain import PretrainSettings, clone, record
+from bh8_gym.agents.pretrain import (
+    DEMONSTRATIONS_FILE,
+    PretrainSettings,
+    clone,
+    load_demonstrations,
+    record,
+    save_demonstrations,
+)
 from bh8_gym.agents.run_files import (
     BEST_MODEL_FILE,
     copy_atomic,
@@ -290,6 +297,7 @@ class Trainer:
         if self.asymmetric_critic:
             env_kwargs["privileged"] = True  # the same observations as the training envs
         demonstrations = record(self.config["env_id"], env_kwargs, self.pretrain, gamma=float(model.gamma))
+        save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)
         losses = clone(model, demonstrations, self.pretrain, seed=self.seed)
         write_json_atomic(self.out_dir / "pretrain.json", {
             "baseline": self.pretrain.baseline, "baseline_kwargs": self.pretrain.baseline_kwargs,
@@ -391,6 +399,7 @@ class Trainer:
 
         from bh8_gym.agents.callbacks import (
             EvaluationCallback,
+            KeepDemonstrationsCallback,
             RunCheckpointCallback,
             StopCallback,
             TrainingProgressCallback,
@@ -442,6 +451,10 @@ class Trainer:
                                                                int(self.config["train"].get("checkpoint_freq", 10_000)))]
                 if self.progress:
                     callbacks.append(TrainingProgressCallback(total_timesteps))
+                if self.pretrain is not None and self.pretrain.keep_weight > 0:
+                    callbacks.append(KeepDemonstrationsCallback(
+                        load_demonstrations(self.out_dir / DEMONSTRATIONS_FILE), self.pretrain,
+                        rollout_steps=int(model.n_steps) * self.n_envs, seed=self.seed))
                 callbacks.append(StopCallback(self))
                 model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
                             tb_log_name=self.config["algorithm"])

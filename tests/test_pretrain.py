@@ -100,3 +100,43 @@ def test_a_warm_started_run_evaluates_the_cloned_policy_at_step_zero(tmp_path):
     assert report["episodes"] == 1 and report["steps"] > 200 and report["baseline"] == "squeeze"
     assert [row["timesteps"] for row in read_evaluations(out)][0] == 0.0
     assert (out / "best_model.zip").is_file()
+
+
+def test_keeping_the_demonstrations_during_rl_and_resuming_with_them(tmp_path):
+    """keep_weight > 0: the demonstrations are saved in the run directory, RL's rollouts end with
+    cloning minibatches (logged weight decays), and a resumed run reads them back."""
+    from bh8_gym.agents.pretrain import DEMONSTRATIONS_FILE, load_demonstrations
+    from bh8_gym.agents.train import Trainer
+
+    config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 1, "action_noise": 0.1,
+                            "keep_weight": 1.0, "keep_batches": 2})
+    out = tmp_path / "run"
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(128)
+    demonstrations = load_demonstrations(out / DEMONSTRATIONS_FILE)
+    assert demonstrations.episodes == 1 and len(demonstrations.actions) > 200
+    state = Trainer(config, out, n_envs=1, seed=0, progress=False).run(256, resume=True)
+    assert state["num_timesteps"] == 256
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    weights = []
+    for events in sorted(out.glob("tb/*/events.out.tfevents*")):
+        accumulator = EventAccumulator(str(events))
+        accumulator.Reload()
+        if "pretrain/keep_weight" in accumulator.Tags()["scalars"]:
+            weights += [event.value for event in accumulator.Scalars("pretrain/keep_weight")]
+    # one rollout of 128 steps per run: weight 1 after the first, 0.95 after the resumed second
+    assert weights == pytest.approx([1.0, 0.95]), weights
+
+
+def test_action_noise_disturbs_the_executed_actions_but_records_the_scripts():
+    """DART-style demonstrations: with action noise the recorded labels are still the script's
+    bytes (a LOOP velocity of exactly 0 while a finger holds appears among them), the episode
+    differs from the noiseless one."""
+    from bh8_gym.agents.pretrain import PretrainSettings, record
+
+    kwargs = {"object_set": "primitives-train", "randomize": False}
+    clean = record(GRASP, kwargs, PretrainSettings(episodes=1, seed=7), gamma=0.99)
+    noisy = record(GRASP, kwargs, PretrainSettings(episodes=1, seed=7, action_noise=0.2), gamma=0.99)
+    assert not np.array_equal(clean.observations[:50], noisy.observations[:50])
+    levels = np.unique(np.round(noisy.actions[:, 0], 4))
+    assert len(levels) < 40, "labels must be the script's quantised bytes, not noisy floats"
