@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 import time
 from pathlib import Path
 
 from bh8_gym.agents.sweep_space import apply_space
-from bh8_gym.agents.train import Trainer, read_run_json, write_json_atomic
+from bh8_gym.agents.train import BEST_MODEL_FILE, Trainer, read_run_json, write_json_atomic
 
 TRIAL_FILE = "trial.json"
 RESULT_FILE = "result.json"
@@ -50,6 +51,33 @@ def _metrics(state: dict, row: dict | None = None) -> dict:
     return metrics
 
 
+class _WallClock:
+    """Keeps trial.json's wall_seconds (all attempts) up to date: at each evaluation and every
+    HEARTBEAT_SECONDS, so a killed attempt's time is counted too."""
+
+    HEARTBEAT_SECONDS = 10.0
+
+    def __init__(self, path: Path, record: dict):
+        self.path, self.record = path, record
+        self.started, self.before = time.monotonic(), float(record["wall_seconds"])
+        self.lock = threading.Lock()
+        self.stopped = threading.Event()
+        threading.Thread(target=self._beat, daemon=True, name="bh8-sweep-wall-clock").start()
+
+    def save(self) -> None:
+        with self.lock:
+            self.record["wall_seconds"] = self.before + time.monotonic() - self.started
+            write_json_atomic(self.path, self.record)
+
+    def _beat(self) -> None:
+        while not self.stopped.wait(self.HEARTBEAT_SECONDS):
+            self.save()
+
+    def stop(self) -> None:
+        self.stopped.set()
+        self.save()
+
+
 def run_trial(params: dict, settings: dict) -> None:
     """The Ray Tune function trainable. `params`: the trial's draw (seed or Repeater index, and
     "space": the search-space values); `settings`: the sweep's fixed settings (sweep.json)."""
@@ -70,20 +98,22 @@ def run_trial(params: dict, settings: dict) -> None:
     record.update(attempts=record["attempts"] + 1, trial_id=trial_id, seed=seed, space=params.get("space", {}),
                   host=socket.gethostname(), pid=os.getpid())
     write_json_atomic(run_dir / TRIAL_FILE, record)
-    started, wall_before = time.monotonic(), float(record["wall_seconds"])
-
-    def save_wall_time() -> None:
-        record["wall_seconds"] = wall_before + time.monotonic() - started
-        write_json_atomic(run_dir / TRIAL_FILE, record)
+    clock = _WallClock(run_dir / TRIAL_FILE, record)
 
     def on_evaluation(row: dict, state: dict) -> None:
-        save_wall_time()
+        clock.save()
         tune.report(_metrics(state, row))
 
-    trainer = Trainer(config, run_dir, n_envs=settings["n_envs"], seed=seed, progress=False,
-                      on_evaluation=on_evaluation)
-    state = trainer.run(settings["timesteps"], resume=trainer.has_checkpoint())
-    save_wall_time()
+    try:
+        trainer = Trainer(config, run_dir, n_envs=settings["n_envs"], seed=seed, progress=False,
+                          on_evaluation=on_evaluation)
+        resume = trainer.has_checkpoint()
+        if not resume:  # an attempt killed before its first checkpoint: its evaluations are redone
+            for leftover in ("evaluations.csv", BEST_MODEL_FILE):
+                (run_dir / leftover).unlink(missing_ok=True)
+        state = trainer.run(settings["timesteps"], resume=resume)
+    finally:
+        clock.stop()
     if state["best_success_rate"] is None:
         raise RuntimeError(f"the run made no validation evaluation in {state['num_timesteps']} steps "
                            f"(eval.freq {config['eval'].get('freq', 10_000)})")
