@@ -243,12 +243,12 @@ def markdown(settings: dict, records: list[TrialRecord], tests: list[tuple[Trial
         for name, part in results["by_object_set"].items():
             lines.append(f"- {name or results['env_id']}: success rate {part['success_rate']:.3f} "
                          f"({part['successes']}/{part['episodes']}, 95% Wilson CI {part['success_ci_low']:.3f}-"
-                         f"{part['success_ci_high']:.3f})")
+                         f"{part['success_ci_high']:.3f}); mean return {part['mean_return']:.2f}")
         summary = results["summary"]
         if len(results["by_object_set"]) > 1:
             lines.append(f"- all: success rate {summary['success_rate']:.3f} ({summary['successes']}/"
                          f"{summary['episodes']}, 95% Wilson CI {summary['success_ci_low']:.3f}-"
-                         f"{summary['success_ci_high']:.3f})")
+                         f"{summary['success_ci_high']:.3f}); mean return {summary['mean_return']:.2f}")
         lines += [f"- the report is in `{TEST_DIR}/{record.run_dir.name}/`", ""]
     if plot is not None:
         lines += ["", "## Validation curves", "", f"![validation curves]({plot.name})", "",

@@ -5,8 +5,8 @@ The trial's run directory is `<experiment>/runs/<trial id>_seed<seed>` on the sw
 retried trial (a crash, a killed worker, `bh8 sweep --resume`) finds its checkpoint there and goes
 on from it exactly as `bh8 train --resume` would. Beside bh8 train's files it holds:
 
-    trial.json    attempts so far, wall seconds of all attempts, the worker's host and pid
-                  (rewritten atomically at each attempt's start and each evaluation)
+    trial.json    attempts so far and the step each started from, wall seconds of all attempts,
+                  the worker's host and pid (rewritten atomically as the trial goes)
     result.json   written last and atomically when the run has finished: the trial is complete
                   only when this file exists
 """
@@ -111,6 +111,10 @@ def run_trial(params: dict, settings: dict) -> None:
         if not resume:  # an attempt killed before its first checkpoint: its evaluations are redone
             for leftover in ("evaluations.csv", BEST_MODEL_FILE):
                 (run_dir / leftover).unlink(missing_ok=True)
+        start = read_run_json(trainer.checkpoint_dir / "latest.json").get("num_timesteps", 0) if resume else 0
+        with clock.lock:
+            record.setdefault("starts", []).append(int(start))  # the step each attempt started from
+        clock.save()
         state = trainer.run(settings["timesteps"], resume=resume)
     finally:
         clock.stop()
