@@ -164,17 +164,18 @@ def new_settings(args: argparse.Namespace) -> dict:
     resources = args.resources_per_trial or {"cpu": 1.0}
     sweep_dir = args.out.resolve()
     experiment = (args.storage.resolve() if args.storage else sweep_dir.parent) / sweep_dir.name
+    if (sweep_dir / SETTINGS_FILE).exists():
+        raise SweepConfigError(f"{str(sweep_dir)!r} holds a sweep already; continue it with --resume {args.out} "
+                               "or choose another --out")
     for folder in {sweep_dir, experiment}:
         if folder.exists() and any(folder.iterdir()):
-            hint = ("continue it with --resume" if (folder / SETTINGS_FILE).exists() or folder == experiment
-                    else "choose another --out")
-            raise SweepConfigError(f"{str(folder)!r} is not empty; {hint}")
+            raise SweepConfigError(f"{str(folder)!r} is not empty; choose another --out")
     return {
         "version": 1,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "sweep_dir": str(sweep_dir),
         "experiment_path": str(experiment),
-        "config_path": str(config_path),
+        "config_path": str(Path(config_path).resolve()),
         "config": config,
         **sweep,
         "timesteps": timesteps,
@@ -232,10 +233,8 @@ def _tuner(settings: dict, resume: bool):
     from bh8_gym.agents.sweep_trial import METRIC
 
     experiment = Path(settings["experiment_path"])
-    if resume:
-        if not tune.Tuner.can_restore(str(experiment)):
-            raise SweepConfigError(f"--resume: no Ray Tune state in {str(experiment)!r} (the sweep was stopped before "
-                                   "its first trial started); start it again")
+    # A sweep stopped before Ray Tune saved any state (Ray failed to start, Ctrl-C at once) starts anew.
+    if resume and tune.Tuner.can_restore(str(experiment)):
         # Errored trials go on from their checkpoints too: a resume usually follows a fixed fault.
         return tune.Tuner.restore(str(experiment), trainable=_trainable(settings), resume_unfinished=True,
                                   resume_errored=True)
