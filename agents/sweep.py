@@ -274,7 +274,9 @@ def _start_ray(args: argparse.Namespace, settings: dict) -> bool:
             ray.init(num_cpus=args.num_cpus or os.cpu_count() or 1, include_dashboard=False)
     except (ConnectionError, RuntimeError, ValueError) as error:
         where = f"the Ray cluster at {args.address!r}" if args.address else "a local Ray"
-        raise SweepConfigError(f"cannot start or join {where}: {error}") from None
+        hint = ("; a cluster with token authentication (Ray's default once ~/.ray/auth_token exists) also needs "
+                "RAY_AUTH_MODE=token and its token here (docs/cluster.md)") if args.address else ""
+        raise SweepConfigError(f"cannot start or join {where}: {error}{hint}") from None
     total = ray.cluster_resources()
     names = {"cpu": "CPU", "gpu": "GPU"}  # Ray's names in cluster_resources()
     short = {name: amount for name, amount in settings["resources"].items()
@@ -330,10 +332,10 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         settings = resumed_settings(args) if args.resume is not None else new_settings(args)
-        if args.resume is None:
-            _write_settings(settings)
         experiment = Path(settings["experiment_path"])
         owns_ray = _start_ray(args, settings)
+        if args.resume is None:
+            _write_settings(settings)
     except (SweepConfigError, TrainingError, ValueError) as error:
         print(f"bh8 sweep: {error}", file=sys.stderr)
         return 2
