@@ -271,7 +271,8 @@ def _start_ray(args: argparse.Namespace, settings: dict) -> bool:
         if args.address:
             ray.init(address=args.address, log_to_driver=True)
         else:
-            ray.init(num_cpus=args.num_cpus or os.cpu_count() or 1, include_dashboard=False)
+            # "local": a Ray of its own even when `ray start` left one running here (that one: --address auto)
+            ray.init(address="local", num_cpus=args.num_cpus or os.cpu_count() or 1, include_dashboard=False)
     except (ConnectionError, RuntimeError, ValueError) as error:
         where = f"the Ray cluster at {args.address!r}" if args.address else "a local Ray"
         hint = ("; a cluster with token authentication (Ray's default once ~/.ray/auth_token exists) also needs "
@@ -297,8 +298,10 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         PLOT_FILE,
         REPORT_FILE,
         STOPPED,
+        TEST_DIR,
         markdown,
         plot_curves,
+        previous_test,
         ranked,
         test_evaluation,
     )
@@ -311,8 +314,9 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
     if not any(r.status in (STOPPED, PENDING) for r in records):
         chosen = [r for r in ranked(records) if r.status == COMPLETE and r.best is not None][:args.test_top]
         for record in chosen:
-            print(f"bh8 sweep: evaluating trial {record.trial_id} (seed {record.seed}) on the test split "
-                  f"({test_arguments['episodes']} episodes per object set)", flush=True)
+            if previous_test(sweep_dir / TEST_DIR / record.run_dir.name, **test_arguments) is None:
+                print(f"bh8 sweep: evaluating trial {record.trial_id} (seed {record.seed}) on the test split "
+                      f"({test_arguments['episodes']} episodes per object set)", flush=True)
             tests.append((record, test_evaluation(record, sweep_dir, **test_arguments)))
     plot = plot_curves(records, sweep_dir / PLOT_FILE)
     report = sweep_dir / REPORT_FILE

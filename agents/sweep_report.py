@@ -118,8 +118,9 @@ def test_evaluation(record: TrialRecord, sweep_dir: Path, episodes: int, seed: i
     from bh8_gym.agents import evaluate
 
     target = sweep_dir / TEST_DIR / record.run_dir.name
-    if (target / "results.json").exists():
-        return json.loads((target / "results.json").read_text())
+    done = previous_test(target, episodes, seed, objects)
+    if done is not None:
+        return done
     staging = target.with_name(target.name + ".partial")
     shutil.rmtree(staging, ignore_errors=True)
     parser = argparse.ArgumentParser()
@@ -131,8 +132,24 @@ def test_evaluation(record: TrialRecord, sweep_dir: Path, episodes: int, seed: i
     if code != 0:
         raise RuntimeError(f"bh8 eval of {record.model} failed: {output.getvalue().strip()}")
     (staging / "eval.txt").write_text(output.getvalue())
+    if target.exists():  # made with other --test-* settings: replaced by the one asked for now
+        shutil.rmtree(target)
     os.replace(staging, target)
     return json.loads((target / "results.json").read_text())
+
+
+def previous_test(target: Path, episodes: int, seed: int, objects: str) -> dict | None:
+    """The test report in `target` if it was made with these settings (the test split is evaluated
+    once; a resumed or repeated sweep reads it back), else None."""
+    try:
+        results = json.loads((target / "results.json").read_text())
+    except (OSError, ValueError):
+        return None
+    sets = [name.strip() for name in objects.split(",") if name.strip()]
+    if (results.get("seed") == seed and results.get("object_sets") in ([""], sets)
+            and all(part["episodes"] == episodes for part in results["by_object_set"].values())):
+        return results
+    return None
 
 
 def test_command_arguments(model: Path, episodes: int, seed: int, objects: str) -> list[str]:
