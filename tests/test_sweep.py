@@ -169,6 +169,36 @@ def test_bad_input_exits_2_with_a_message_before_ray_starts(tmp_path, case):
         assert not (tmp_path / "sweep").exists()
 
 
+def test_sweep_table_nested_or_dotted_keys_cross_grids_with_seeds():
+    """[sweep.space.hyperparameters] and quoted dotted keys name the same dimensions; grids cross
+    each other and the seeds; a trial's values land in its copy of the config only."""
+    import tomllib
+
+    from bh8_gym.agents.sweep_space import apply_space, count_trials, describe, read_sweep_table
+
+    text = TINY.format(total=4096, eval_freq=1024, seeds="[3, 4, 5]", space="""\
+samples = 2
+[sweep.space]
+"policy_kwargs.net_arch" = {choice = [[16], [32, 32]]}
+[sweep.space.hyperparameters]
+n_steps = {grid = [64, 128]}
+learning_rate = {loguniform = [1e-4, 1e-3]}
+""")
+    config = tomllib.loads(text)
+    for table in ("env_kwargs", "eval_env_kwargs", "train", "eval", "hyperparameters", "policy_kwargs"):
+        config.setdefault(table, {})
+    sweep = read_sweep_table(config)
+    assert "sweep" not in config  # each trial's run.json holds a plain bh8 train config
+    assert sweep["seeds"] == [3, 4, 5] and sweep["samples"] == 2
+    assert set(sweep["space"]) == {"hyperparameters.n_steps", "hyperparameters.learning_rate", "policy_kwargs.net_arch"}
+    assert count_trials(sweep) == 3 * 2 * 2
+    trial = apply_space(config, {"hyperparameters.n_steps": 64, "policy_kwargs.net_arch": [32, 32]})
+    assert trial["hyperparameters"]["n_steps"] == 64 and trial["policy_kwargs"]["net_arch"] == [32, 32]
+    assert config["hyperparameters"]["n_steps"] == 128 and config["policy_kwargs"]["net_arch"] == [16]
+    assert describe({"hyperparameters.learning_rate": 0.000316227, "hyperparameters.n_steps": 64}) == \
+        "learning_rate=0.000316, n_steps=64"
+
+
 # -- real sweeps --------------------------------------------------------------------------------
 
 
