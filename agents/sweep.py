@@ -317,7 +317,10 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
             if previous_test(sweep_dir / TEST_DIR / record.run_dir.name, **test_arguments) is None:
                 print(f"bh8 sweep: evaluating trial {record.trial_id} (seed {record.seed}) on the test split "
                       f"({test_arguments['episodes']} episodes per object set)", flush=True)
-            tests.append((record, test_evaluation(record, sweep_dir, **test_arguments)))
+            try:
+                tests.append((record, test_evaluation(record, sweep_dir, **test_arguments)))
+            except RuntimeError as error:  # bh8 eval refused (e.g. an unknown --test-objects set): said, not hidden
+                print(f"bh8 sweep: {error}", file=sys.stderr)
     plot = plot_curves(records, sweep_dir / PLOT_FILE)
     report = sweep_dir / REPORT_FILE
     write_text_atomic(report, markdown(settings, records, tests, test_arguments, plot))
