@@ -289,7 +289,7 @@ def _start_ray(args: argparse.Namespace, settings: dict) -> bool:
     return True
 
 
-def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path]:
+def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path, bool]:
     """Test evaluation of the chosen model(s) (only once every trial has finished), sweep.md, plot."""
     from bh8_gym.agents.evaluate import DEFAULT_EVALUATION_SETS
     from bh8_gym.agents.sweep_report import (
@@ -310,7 +310,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,
                       "objects": args.test_objects or DEFAULT_EVALUATION_SETS}
-    tests = []
+    tests, failed = [], False
     if not any(r.status in (STOPPED, PENDING) for r in records):
         chosen = [r for r in ranked(records) if r.status == COMPLETE and r.best is not None][:args.test_top]
         for record in chosen:
@@ -321,10 +321,11 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
                 tests.append((record, test_evaluation(record, sweep_dir, **test_arguments)))
             except RuntimeError as error:  # bh8 eval refused (e.g. an unknown --test-objects set): said, not hidden
                 print(f"bh8 sweep: {error}", file=sys.stderr)
+                failed = True
     plot = plot_curves(records, sweep_dir / PLOT_FILE)
     report = sweep_dir / REPORT_FILE
     write_text_atomic(report, markdown(settings, records, tests, test_arguments, plot))
-    return tests, report
+    return tests, report, failed
 
 
 def run(args: argparse.Namespace) -> int:
@@ -362,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
 
             ray.shutdown()
     records = collect(results, experiment, settings["seeds"])
-    tests, report = _report(settings, records, args)
+    tests, report, test_failed = _report(settings, records, args)
     counts = {status: sum(r.status == status for r in records) for status in (COMPLETE, ERROR, STOPPED, PENDING)}
     print(f"bh8 sweep: {len(records)} trials: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n)
           + f"; report {report}")
@@ -375,4 +376,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"bh8 sweep: stopped with {counts[STOPPED] + counts[PENDING]} unfinished trials; continue with "
               f"bh8 sweep --resume {settings['sweep_dir']}", file=sys.stderr)
         return 130
-    return 1 if counts[ERROR] else 0
+    return 1 if counts[ERROR] or test_failed else 0
