@@ -13,8 +13,8 @@ directory (`--out`) holds:
                             experiment state, unless --storage puts them elsewhere
 
 Ray is an optional dependency (`pip install "bh8-gym[cluster]"`). Usage errors exit 2; a sweep
-whose trials all finished exits 0 (1 if any failed for good); a sweep stopped with unfinished
-trials (Ctrl-C) exits 130 and `bh8 sweep --resume DIR` continues it.
+whose trials all finished exits 0 (1 if any failed for good, or the test evaluation did); a sweep
+stopped with unfinished trials (Ctrl-C) exits 130 and `bh8 sweep --resume DIR` continues it.
 """
 from __future__ import annotations
 
