@@ -305,7 +305,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         ranked,
         test_evaluation,
     )
-    from bh8_gym.agents.train import write_text_atomic
+    from bh8_gym.agents.policy_file import atomic_write
 
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,
@@ -324,7 +324,8 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
                 failed = True
     plot = plot_curves(records, sweep_dir / PLOT_FILE)
     report = sweep_dir / REPORT_FILE
-    write_text_atomic(report, markdown(settings, records, tests, test_arguments, plot))
+    text = markdown(settings, records, tests, test_arguments, plot)
+    atomic_write(report, lambda handle: handle.write(text.encode()))
     return tests, report, failed
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import io
 import json
 import os
@@ -17,7 +18,7 @@ import numpy as np
 
 from bh8_gym.agents.sweep_space import describe
 from bh8_gym.agents.sweep_trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
-from bh8_gym.agents.train import BEST_MODEL_FILE, CHECKPOINT_DIR, read_evaluations
+from bh8_gym.agents.train import BEST_MODEL_FILE, CHECKPOINT_DIR
 
 REPORT_FILE = "sweep.md"
 PLOT_FILE = "validation_curves.png"
@@ -60,6 +61,23 @@ def _read_json(path: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
+def _read_evaluations(path: Path) -> list[dict[str, float]]:
+    """A run's evaluations.csv rows as floats (none yet: empty). The rows are appended one at a time
+    and a resumed run drops those past its checkpoint, so a row cut short by a kill is left out."""
+    try:
+        with path.open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except FileNotFoundError:
+        return []
+    complete = []
+    for row in rows:
+        try:
+            complete.append({key: float(value) for key, value in row.items()})
+        except (TypeError, ValueError):  # a partial last line: missing fields are None
+            pass
+    return complete
+
+
 def _error_line(error: BaseException | None) -> str:
     """The informative line of a trial's error (the last line of a worker's traceback)."""
     if error is None:
@@ -85,7 +103,7 @@ def collect(results, experiment_path: Path, seeds: list[int]) -> list[TrialRecor
             status = ERROR
         else:
             status = STOPPED if run_dir.exists() else PENDING
-        evaluations = read_evaluations(run_dir) if (run_dir / "evaluations.csv").exists() else []
+        evaluations = _read_evaluations(run_dir / "evaluations.csv")
         if final is not None:
             steps = int(final["num_timesteps"])
         else:  # the last checkpoint's step: what a resumed run starts from
