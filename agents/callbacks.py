@@ -67,6 +67,8 @@ class EvaluationCallback(BaseCallback):
             self.state["best_success_rate"], self.state["best_mean_return"] = score
             self.state["best_timesteps"] = self.num_timesteps
             save_model_atomic(self.model, self.trainer.out_dir / BEST_MODEL_FILE)
+        if getattr(self.trainer, "on_evaluation", None) is not None:
+            self.trainer.on_evaluation(row, self.state)
         return summary
 
     def _on_training_end(self) -> None:

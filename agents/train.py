@@ -223,8 +223,11 @@ class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
     def __init__(self, config: dict, out_dir: Path, n_envs: int | None = None, seed: int = 0,
-                 progress: bool = True, verbose: int = 0):
+                 progress: bool = True, verbose: int = 0, on_evaluation=None):
         self.config = config
+        #: Called after each validation evaluation with its evaluations.csv row and the run's state
+        #: (best so far); `bh8 sweep` reports them to Ray Tune.
+        self.on_evaluation = on_evaluation
         #: PPO with a critic that sees privileged simulator state (agents/asymmetric.py).
         self.asymmetric_critic = bool(config.get("asymmetric_critic", False))
         if self.asymmetric_critic and config["algorithm"] != "PPO":
@@ -368,6 +371,13 @@ class Trainer:
 
         with handling_signals(STOP_SIGNALS, request_stop):
             yield
+
+    def has_checkpoint(self) -> bool:
+        """Whether the run directory holds a checkpoint to resume from (one a kill left staged but
+        complete is put in place first)."""
+        if self.checkpoint_dir.is_dir():
+            self._finish_checkpoint()
+        return (self.checkpoint_dir / "latest.zip").exists()
 
     def _read_checkpoint_state(self) -> dict:
         path = self.checkpoint_dir / "latest.json"

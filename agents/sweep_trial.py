@@ -1,0 +1,127 @@
+"""One `bh8 sweep` trial in a Ray worker: a `bh8 train` run (the same Trainer, config format, run
+directory, checkpoints and resume) that reports each validation evaluation to Ray Tune.
+
+The trial's run directory is `<experiment>/runs/<trial id>_seed<seed>` on the sweep's storage, so a
+retried trial (a crash, a killed worker, `bh8 sweep --resume`) finds its checkpoint there and goes
+on from it exactly as `bh8 train --resume` would. Beside bh8 train's files it holds:
+
+    trial.json    attempts so far and the step each started from, wall seconds of all attempts,
+                  the worker's host and pid (rewritten atomically as the trial goes)
+    result.json   written last and atomically when the run has finished: the trial is complete
+                  only when this file exists
+"""
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+
+from bh8_gym.agents.sweep_space import apply_space
+from bh8_gym.agents.train import BEST_MODEL_FILE, Trainer, read_run_json, write_json_atomic
+
+TRIAL_FILE = "trial.json"
+RESULT_FILE = "result.json"
+RUNS_DIR = "runs"
+# Ray Tune's metric: the best validation success rate so far (the rule that keeps best_model.zip).
+METRIC = "best_validation_success"
+# Set by Ray Tune's Repeater (Optuna searches): which of the sweep's seeds this repetition trains.
+TRIAL_INDEX = "__trial_index__"
+
+
+def run_dir_name(trial_id: str, seed: int) -> str:
+    return f"{trial_id}_seed{seed}"
+
+
+def trial_seed(params: dict, seeds: list[int]) -> int:
+    """The seed of a trial: a grid dimension of its own, or the Repeater's index into the seeds."""
+    if "seed" in params:
+        return int(params["seed"])
+    return int(seeds[int(params[TRIAL_INDEX]) % len(seeds)])
+
+
+def _metrics(state: dict, row: dict | None = None) -> dict:
+    metrics = {METRIC: float(state["best_success_rate"]), "best_mean_return": float(state["best_mean_return"]),
+               "best_timesteps": int(state.get("best_timesteps", 0))}
+    if row is not None:
+        metrics.update(timesteps=int(row["timesteps"]), validation_success=float(row["success_rate"]),
+                       validation_ci_low=float(row["success_ci_low"]),
+                       validation_ci_high=float(row["success_ci_high"]), validation_episodes=int(row["episodes"]))
+    return metrics
+
+
+class _WallClock:
+    """Keeps trial.json's wall_seconds (all attempts) up to date: at each evaluation and every
+    HEARTBEAT_SECONDS, so a killed attempt's time is counted too."""
+
+    HEARTBEAT_SECONDS = 10.0
+
+    def __init__(self, path: Path, record: dict):
+        self.path, self.record = path, record
+        self.started, self.before = time.monotonic(), float(record["wall_seconds"])
+        self.lock = threading.Lock()
+        self.stopped = threading.Event()
+        threading.Thread(target=self._beat, daemon=True, name="bh8-sweep-wall-clock").start()
+
+    def save(self) -> None:
+        with self.lock:
+            self.record["wall_seconds"] = self.before + time.monotonic() - self.started
+            write_json_atomic(self.path, self.record)
+
+    def _beat(self) -> None:
+        while not self.stopped.wait(self.HEARTBEAT_SECONDS):
+            self.save()
+
+    def stop(self) -> None:
+        self.stopped.set()
+        self.save()
+
+
+def run_trial(params: dict, settings: dict) -> None:
+    """The Ray Tune function trainable. `params`: the trial's draw (seed or Repeater index, and
+    "space": the search-space values); `settings`: the sweep's fixed settings (sweep.json)."""
+    from ray import tune
+
+    trial_id = tune.get_context().get_trial_id()
+    seed = trial_seed(params, settings["seeds"])
+    config = apply_space(settings["config"], params.get("space", {}))
+    run_dir = Path(settings["experiment_path"]) / RUNS_DIR / run_dir_name(trial_id, seed)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    result_path = run_dir / RESULT_FILE
+    if result_path.exists():  # finished before Tune heard of it (a kill in between): nothing to redo
+        tune.report(read_run_json(result_path)["metrics"])
+        return
+
+    record = read_run_json(run_dir / TRIAL_FILE) if (run_dir / TRIAL_FILE).exists() else {"attempts": 0,
+                                                                                          "wall_seconds": 0.0}
+    record.update(attempts=record["attempts"] + 1, trial_id=trial_id, seed=seed, space=params.get("space", {}),
+                  host=socket.gethostname(), pid=os.getpid())
+    write_json_atomic(run_dir / TRIAL_FILE, record)
+    clock = _WallClock(run_dir / TRIAL_FILE, record)
+
+    def on_evaluation(row: dict, state: dict) -> None:
+        clock.save()
+        tune.report(_metrics(state, row))
+
+    try:
+        trainer = Trainer(config, run_dir, n_envs=settings["n_envs"], seed=seed, progress=False,
+                          on_evaluation=on_evaluation)
+        resume = trainer.has_checkpoint()
+        if not resume:  # an attempt killed before its first checkpoint: its evaluations are redone
+            for leftover in ("evaluations.csv", BEST_MODEL_FILE):
+                (run_dir / leftover).unlink(missing_ok=True)
+        start = read_run_json(trainer.checkpoint_dir / "latest.json").get("num_timesteps", 0) if resume else 0
+        with clock.lock:
+            record.setdefault("starts", []).append(int(start))  # the step each attempt started from
+        clock.save()
+        state = trainer.run(settings["timesteps"], resume=resume)
+    finally:
+        clock.stop()
+    if state["best_success_rate"] is None:
+        raise RuntimeError(f"the run made no validation evaluation in {state['num_timesteps']} steps "
+                           f"(eval.freq {config['eval'].get('freq', 10_000)})")
+    metrics = _metrics(state)
+    write_json_atomic(result_path, {"metrics": metrics, "num_timesteps": int(state["num_timesteps"]),
+                                    "wall_seconds": record["wall_seconds"], "attempts": record["attempts"]})
+    tune.report(metrics)
