@@ -18,9 +18,12 @@ dimensions are made for each grid point. No Ray here: `tune_domains` converts th
 from __future__ import annotations
 
 import copy
+import dataclasses
 import inspect
 import math
 from typing import Any
+
+from bh8_gym.agents.pretrain import PretrainSettings
 
 SWEEP_TABLE = "sweep"
 SWEEP_KEYS = ("seeds", "samples", "search", "space")
@@ -149,7 +152,7 @@ def check_key(config: dict, key: str) -> None:
                                "run a sweep per algorithm or environment")
     if head == "asymmetric_critic" and not rest:
         return
-    tables = ("train", "eval", "hyperparameters", "policy_kwargs", *ENV_TABLES)
+    tables = ("train", "eval", "hyperparameters", "policy_kwargs", "pretrain", *ENV_TABLES)
     if head not in tables or not rest:
         raise SweepConfigError(f"sweep.space.{key}: unknown config key; a search dimension is asymmetric_critic or "
                                f"a key in one of the tables {', '.join(tables)} (e.g. hyperparameters.learning_rate)")
@@ -164,6 +167,8 @@ def check_key(config: dict, key: str) -> None:
         known = tuple(set(inspect.signature(_algorithm_class(config["algorithm"])).parameters) - set(TRAINER_ARGUMENTS))
     elif head == "policy_kwargs":
         known = tuple(_policy_parameters(config["algorithm"]))
+    elif head == "pretrain":
+        known = tuple(f.name for f in dataclasses.fields(PretrainSettings))
     else:
         parameters = _env_parameters(config["env_id"])
         known = None if parameters is None else tuple(parameters)
