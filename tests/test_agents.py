@@ -707,6 +707,7 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
     config["policy_kwargs"]["net_arch"] = [16, 16]
     config["eval"].update(freq=64, episodes=1)
     config["train"]["checkpoint_freq"] = 64
+    config["pretrain"].update(episodes=1, epochs=1)  # the default's warm start, kept short
     out = tmp_path / "run"
     Trainer(config, out, n_envs=1, seed=0, progress=False).run(64)
     run = json.loads((out / "run.json").read_text())
