@@ -28,6 +28,7 @@ def _config(env_id: str, timesteps: int, folder: Path) -> Path:
     config = tomllib.loads(text)
     config["train"].update(total_timesteps=timesteps, checkpoint_freq=timesteps, n_envs=1)
     config["eval"].update(freq=timesteps, episodes=5)
+    config.pop("pretrain", None)  # the training loop is what the sweep parallelises; a warm start would dwarf it
     lines = []
     for key, value in config.items():
         if not isinstance(value, dict):
