@@ -1,4 +1,5 @@
-"""Shared fixtures: a host-side `Link` to a simulated hand, in-process or through a real pty.
+"""Shared fixtures: a host-side `Link` to a simulated hand, in-process or through a real pty, and
+an exported reach policy for the deploy tests.
 
 Conformance tests take the `link` fixture, which runs each test twice: against the firmware
 in-process and against `bh8 serve` on a pseudo-terminal through a plain pyserial client. The
@@ -155,3 +156,21 @@ def link(request, tmp_path):
         yield request.getfixturevalue("inproc_link")
     else:
         yield request.getfixturevalue("pty_link")
+
+
+@pytest.fixture(scope="module")
+def reach_policy_npz(tmp_path_factory):
+    """An untrained PPO actor on BH8FingerReach-v0 exported to .npz with the real exporter (two
+    layers: 16 hidden units, 4 actions)."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.policy_file import export_sb3_policy
+
+    env = make_env("BH8FingerReach-v0", {})
+    try:
+        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
+    finally:
+        env.close()
+    path = tmp_path_factory.mktemp("policy") / "reach.npz"
+    return export_sb3_policy(model, path, metadata={"env_id": "BH8FingerReach-v0", "env_kwargs": {}})

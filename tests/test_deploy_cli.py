@@ -31,23 +31,6 @@ class PolicyTriggeringAtCycle3:
         return self.policy.predict(observation, deterministic=deterministic)
 
 
-@pytest.fixture(scope="module")
-def policy_path(tmp_path_factory):
-    """An untrained PPO actor on BH8FingerReach-v0, exported with the real exporter."""
-    from stable_baselines3 import PPO
-
-    from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
-
-    env = make_env(REACH, {})
-    try:
-        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
-    finally:
-        env.close()
-    path = tmp_path_factory.mktemp("policy") / "reach.npz"
-    return export_sb3_policy(model, path, metadata={"env_id": REACH, "env_kwargs": {}})
-
-
 @pytest.fixture
 def port_never_opened(monkeypatch):
     """Fails the test if deploy gets as far as connecting to the hand."""
@@ -70,13 +53,13 @@ def port_never_opened(monkeypatch):
     ("--max-temperature", "inf"),
     ("--baud", "9601"),
 ])
-def test_bad_option_values_are_usage_errors_before_the_port_is_opened(policy_path, tmp_path, capsys,
+def test_bad_option_values_are_usage_errors_before_the_port_is_opened(reach_policy_npz, tmp_path, capsys,
                                                                      port_never_opened, option, value):
     from bh8_gym.cli import main
 
     log = tmp_path / "never.jsonl"
     with pytest.raises(SystemExit) as exited:
-        main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log),
+        main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--log", str(log),
               option, value])
     assert exited.value.code == 2
     last_line = capsys.readouterr().err.strip().splitlines()[-1]
@@ -84,12 +67,12 @@ def test_bad_option_values_are_usage_errors_before_the_port_is_opened(policy_pat
     assert not log.exists()
 
 
-def test_an_unwritable_log_is_a_usage_error_before_the_port_is_opened(policy_path, tmp_path, capsys,
+def test_an_unwritable_log_is_a_usage_error_before_the_port_is_opened(reach_policy_npz, tmp_path, capsys,
                                                                       port_never_opened):
     from bh8_gym.cli import main
 
     log = tmp_path / "no_such_directory" / "deploy.jsonl"
-    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log)])
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--log", str(log)])
     assert code == 2
     error = capsys.readouterr().err.strip()
     assert error == f"bh8 deploy: cannot write the log: [Errno 2] No such file or directory: {str(log)!r}"
@@ -112,11 +95,11 @@ def test_help_shows_the_safety_limits_defaults_and_the_exit_codes(capsys):
         assert f" {code} " in f" {exit_status}", code
 
 
-def test_the_summary_counts_policy_cycles_and_the_log_keeps_every_block(policy_path, tmp_path, capsys):
+def test_the_summary_counts_policy_cycles_and_the_log_keeps_every_block(reach_policy_npz, tmp_path, capsys):
     from bh8_gym.cli import main
 
     log = tmp_path / "deploy.jsonl"
-    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--cycles", "5",
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--cycles", "5",
                  "--log", str(log), "--clock", "cycles"])
     assert code == 0
     assert capsys.readouterr().out.strip() == f"bh8 deploy: 5 policy cycles, stopped: done; log in {log}"
@@ -125,7 +108,7 @@ def test_the_summary_counts_policy_cycles_and_the_log_keeps_every_block(policy_p
     assert records[-1]["event"] == "stop" and records[-1]["blocks"] == 7 and records[-1]["policy_cycles"] == 5
 
 
-def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(policy_path, tmp_path, capsys):
+def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(reach_policy_npz, tmp_path, capsys):
     """`bh8 serve` killed while deploy runs: the original failure with the cycle it happened at (not
     the exit action's failed reopen), a stop record, the unsent safe-exit commands, exit 1."""
     from bh8_gym.cli import main
@@ -145,7 +128,7 @@ def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(
         assert device.startswith("/dev/"), server.stderr.read()
         killer = threading.Thread(target=kill_server_once_policy_cycles_run, daemon=True)
         killer.start()
-        code = main(["deploy", "--port", device, "--policy", str(policy_path), "--cycles", "100000000",
+        code = main(["deploy", "--port", device, "--policy", str(reach_policy_npz), "--cycles", "100000000",
                      "--log", str(log), "--clock", "cycles"])
         killer.join()
     finally:
@@ -165,7 +148,7 @@ def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(
                                 f"cannot open {device!r}")
 
 
-def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path):
+def test_a_port_failure_names_the_cycle_whose_block_failed(reach_policy_npz, tmp_path):
     """The same with a port object that fails like an unplugged adapter on the third policy block:
     cycles 0 ("A"), 1 and 2 are logged, the failure is at cycle 3, and the port cannot be reopened."""
     from bh8_gym.agents.deploy import Deployment
@@ -191,7 +174,7 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
     log = tmp_path / "deploy.jsonl"
     try:
         with log.open("w") as log_file, BarrettHand(port) as hand:
-            policy = PolicyTriggeringAtCycle3(load_policy(policy_path), unplugged)
+            policy = PolicyTriggeringAtCycle3(load_policy(reach_policy_npz), unplugged)
             deployment = Deployment(hand, policy, env.unwrapped.interface, log_file, clock="cycles")
             deployment.setup(env.unwrapped.baud)
             reason = deployment.run(20)
@@ -208,7 +191,7 @@ def test_a_port_failure_names_the_cycle_whose_block_failed(policy_path, tmp_path
     assert all(r.get("line") != "GT" for r in records)  # the exit action never reached the hand
 
 
-def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy_path, tmp_path):
+def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(reach_policy_npz, tmp_path):
     """A RealTime block that times out leaves the line's state unknown and the client out of LOOP;
     the hand may still be in LOOP running the last velocities. finish() resyncs, which sends ^C,
     also with --on-exit none (which sent nothing before: a real hand kept moving)."""
@@ -238,7 +221,7 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
     env = make_env(REACH, {})
     try:
         with (tmp_path / "deploy.jsonl").open("w") as log_file, BarrettHand(port) as hand:
-            policy = PolicyTriggeringAtCycle3(load_policy(policy_path), silent)
+            policy = PolicyTriggeringAtCycle3(load_policy(reach_policy_npz), silent)
             deployment = Deployment(hand, policy, env.unwrapped.interface, log_file, on_exit="none", clock="cycles")
             deployment.setup(env.unwrapped.baud)
             before = len(written)
@@ -253,7 +236,7 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(policy
         port.close()
 
 
-def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_reported_first(policy_path, tmp_path):
+def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_reported_first(reach_policy_npz, tmp_path):
     """finish(): a hand that goes silent at the zero-velocity stop block and stays silent. The
     block's time-out is the safe-exit error (it came first); the failed ^C after it is a note in the
     stop record, not a replacement (before, only the ^C's failure was reported)."""
@@ -277,7 +260,7 @@ def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_
     log = tmp_path / "deploy.jsonl"
     try:
         with log.open("w") as log_file, BarrettHand(port) as hand:
-            deployment = Deployment(hand, load_policy(policy_path), env.unwrapped.interface, log_file, on_exit="none", clock="cycles")
+            deployment = Deployment(hand, load_policy(reach_policy_npz), env.unwrapped.interface, log_file, on_exit="none", clock="cycles")
             deployment.setup(env.unwrapped.baud)
             reason = deployment.run(2)
     finally:
@@ -291,13 +274,13 @@ def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_
     assert stop["safe_exit_error"] == error_text(error)
 
 
-def test_the_temperature_limit_is_checked_before_loop(policy_path, tmp_path, capsys):
+def test_the_temperature_limit_is_checked_before_loop(reach_policy_npz, tmp_path, capsys):
     """The shipped envs' LOOP has no LFT, so a per-cycle temperature check never saw a reading:
     `--max-temperature` is checked with PGET TEMP before LOOP (a safety stop, exit 3, logged)."""
     from bh8_gym.cli import main
 
     log = tmp_path / "deploy.jsonl"
-    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log),
+    code = main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--log", str(log),
                  "--max-temperature", "0"])
     assert code == 3
     assert "safety stop before LOOP: temperature" in capsys.readouterr().err
@@ -307,29 +290,29 @@ def test_the_temperature_limit_is_checked_before_loop(policy_path, tmp_path, cap
     assert records[-2] == {**records[-2], "event": "baud", "rate": 9600}  # left at the rate it was found at
 
 
-def test_a_port_that_cannot_be_opened_leaves_the_old_log_alone(policy_path, tmp_path, capsys):
+def test_a_port_that_cannot_be_opened_leaves_the_old_log_alone(reach_policy_npz, tmp_path, capsys):
     """A mistyped port must not wipe the previous run's log (and its stop record)."""
     from bh8_gym.cli import main
 
     log = tmp_path / "deploy.jsonl"
     log.write_text('{"event": "stop", "reason": "safety stop: the last run"}\n')
-    assert main(["deploy", "--port", "/dev/does-not-exist-bh8", "--policy", str(policy_path), "--log", str(log)]) == 1
+    assert main(["deploy", "--port", "/dev/does-not-exist-bh8", "--policy", str(reach_policy_npz), "--log", str(log)]) == 1
     assert "cannot open" in capsys.readouterr().err
     assert log.read_text() == '{"event": "stop", "reason": "safety stop: the last run"}\n'
 
 
-def test_a_firmware_44_hand_with_the_same_blocks_is_accepted(policy_path, tmp_path, capsys):
+def test_a_firmware_44_hand_with_the_same_blocks_is_accepted(reach_policy_npz, tmp_path, capsys):
     """Without LFT the 4.3 and 4.4 blocks are byte for byte the same (SPEC.md §7): deploy runs."""
     from bh8_gym.cli import main
 
     log = tmp_path / "deploy.jsonl"
-    code = main(["deploy", "--port", "bh8sim://?seed=0&firmware=4.4", "--policy", str(policy_path),
+    code = main(["deploy", "--port", "bh8sim://?seed=0&firmware=4.4", "--policy", str(reach_policy_npz),
                  "--cycles", "3", "--log", str(log)])
     assert code == 0, capsys.readouterr().err
     assert json.loads(log.read_text().splitlines()[-1])["reason"] == "done"
 
 
-def test_ctrl_c_during_the_setup_stops_the_hand_and_switches_the_rate_back(policy_path, tmp_path, capsys, monkeypatch):
+def test_ctrl_c_during_the_setup_stops_the_hand_and_switches_the_rate_back(reach_policy_npz, tmp_path, capsys, monkeypatch):
     """Ctrl-C while HI runs (seconds on a hand): ^C goes to the hand (§5.5 case 4 stops a motion),
     the hand returns to the rate it was found at, the log ends with its stop record; exit 130."""
     from bh8_gym.cli import main
@@ -351,7 +334,7 @@ def test_ctrl_c_during_the_setup_stops_the_hand_and_switches_the_rate_back(polic
     monkeypatch.setattr(BarrettHand, "command", command_interrupted_at_hi)
     monkeypatch.setattr(BarrettHand, "abort", recorded_abort)
     log = tmp_path / "deploy.jsonl"
-    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(policy_path), "--log", str(log)]) == 130
+    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--log", str(log)]) == 130
     assert "interrupted (Ctrl-C) during the setup" in capsys.readouterr().err
     assert sent[-2:] == ["HI", "^C"]
     records = [json.loads(line) for line in log.read_text().splitlines()]

@@ -143,23 +143,6 @@ def test_deploy_prefers_the_pickle_free_export_beside_a_zip(sb3_run, tmp_path, c
 # -- damaged exports --------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    """An untrained PPO reach actor exported to .npz (two layers: 16 hidden units, 4 actions)."""
-    from stable_baselines3 import PPO
-
-    from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
-
-    env = make_env(REACH, {})
-    try:
-        model = PPO("MlpPolicy", env, seed=0, device="cpu", policy_kwargs={"net_arch": [16]})
-    finally:
-        env.close()
-    path = tmp_path_factory.mktemp("policy") / "reach.npz"
-    return export_sb3_policy(model, path, metadata={"env_id": REACH, "env_kwargs": {}})
-
-
 def _damaged(exported, tmp_path, **changes):
     with np.load(exported, allow_pickle=False) as data:
         arrays = {name: data[name] for name in data.files}
@@ -185,7 +168,7 @@ def _metadata(exported, **changes):
     ("n_layers huge", "n_layers must be 1..64"),
     ("metadata a list", "metadata is not a JSON object"),
 ])
-def test_a_damaged_export_is_refused_before_the_hand_is_touched(exported, tmp_path, capsys, monkeypatch, case, message):
+def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz, tmp_path, capsys, monkeypatch, case, message):
     """An .npz whose layer shapes do not chain loaded, ran HI on the hand, then failed at the first
     prediction with numpy's raw matmul error and exit 1, the log without a stop record. The shapes
     (and finiteness) are checked when the file is read: PolicyFileError, `bh8 deploy` exit 2 (a
@@ -193,7 +176,7 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(exported, tmp_pa
     import bh8_gym.client
     from bh8_gym.agents.policy_file import PolicyFileError, load_policy
 
-    with np.load(exported, allow_pickle=False) as data:
+    with np.load(reach_policy_npz, allow_pickle=False) as data:
         w0, w1 = data["layer0_weight"], data["layer1_weight"]
     bad = {
         "layer 1 takes fewer inputs": dict(layer1_weight=w1[:, :15]),
@@ -202,13 +185,13 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(exported, tmp_pa
         "action bounds of another size": dict(action_low=-np.ones(7)),
         "a NaN weight": dict(layer1_weight=np.where(np.eye(*w1.shape) > 0, np.nan, w1)),
         "a negative variance": dict(obs_var=-np.ones(w0.shape[1]), obs_epsilon=np.array(0.0)),
-        "n_layers true": dict(metadata=_metadata(exported, n_layers=True)),
-        "n_layers huge": dict(metadata=_metadata(exported, n_layers=10**9)),
+        "n_layers true": dict(metadata=_metadata(reach_policy_npz, n_layers=True)),
+        "n_layers huge": dict(metadata=_metadata(reach_policy_npz, n_layers=10**9)),
         "metadata a list": dict(metadata=np.array("[1, 2]")),
     }[case]
     if case == "bias of another size":
         message = f"layer 0 has weights ({w0.shape[0]}, 15) and biases (3,)"
-    path = _damaged(exported, tmp_path, **bad)
+    path = _damaged(reach_policy_npz, tmp_path, **bad)
     with pytest.raises(PolicyFileError, match=message.replace("(", r"\(").replace(")", r"\)")):
         load_policy(path)
 
@@ -238,7 +221,7 @@ class _FailingAtCycle:
         return self.policy.predict(observation, deterministic=deterministic)
 
 
-def test_a_policy_failing_mid_run_is_a_stop_with_its_record_and_exit_2(exported, tmp_path, capsys, monkeypatch):
+def test_a_policy_failing_mid_run_is_a_stop_with_its_record_and_exit_2(reach_policy_npz, tmp_path, capsys, monkeypatch):
     """Whatever still fails in a policy mid-run is a stop like a safety limit: the zero-velocity
     block, ^C and the exit action leave the hand safe, the log's stop record names the cycle and
     the error, and the exit status is 2 (a bad policy). It was a raw traceback, exit 1, no record."""
@@ -247,7 +230,7 @@ def test_a_policy_failing_mid_run_is_a_stop_with_its_record_and_exit_2(exported,
 
     monkeypatch.setattr(deploy, "load_policy", lambda path, trust=False: _FailingAtCycle(load_policy(path), 3))
     log = tmp_path / "deploy.jsonl"
-    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(exported), "--log", str(log),
+    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(reach_policy_npz), "--log", str(log),
                  "--clock", "cycles"]) == 2
     err = capsys.readouterr().err
     assert "stopped: policy error at cycle 3: ValueError: matmul" in err and "Traceback" not in err
