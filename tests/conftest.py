@@ -18,6 +18,16 @@ import pytest
 PROMPT = b"=> "
 
 
+def read_to_prompt(port, limit: int = 100) -> bytes:
+    """Read a pyserial port until the prompt, at most `limit` reads (each up to the port's timeout)."""
+    data = bytearray()
+    for _ in range(limit):
+        data += port.read(4096)
+        if data.endswith(PROMPT):
+            return bytes(data)
+    raise AssertionError(f"no prompt after {limit} reads: {bytes(data)!r}")
+
+
 class Link:
     """A serial line to a hand: raw bytes plus the supervisory framing of SPEC.md §2."""
 

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from conftest import PtyLink
+from conftest import PtyLink, read_to_prompt
 from bh8_gym.cli import main
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
@@ -278,9 +278,7 @@ def test_a_failing_simulation_step_still_saves_the_counters(tmp_path):
         device = process.stdout.readline().strip()
         with serial.Serial(device, 9600, timeout=0.05) as port:
             port.write(b"HI\r")
-            reply = b""
-            while not reply.endswith(b"=> "):
-                reply += port.read(100)
+            read_to_prompt(port, limit=400)
             port.write(b"GC\r")  # the steps fail half way through the close
             assert process.wait(timeout=60) == 1
         err = process.stderr.read()

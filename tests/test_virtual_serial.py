@@ -24,7 +24,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import PROMPT, PtyLink
+from conftest import PROMPT, PtyLink, read_to_prompt
 from bh8_gym.realtime_codec import LoopLayout
 from bh8_gym.commands.serve import default_state_dir
 
@@ -58,7 +58,7 @@ def _check_link_serves_then_goes(link: PtyLink, link_path: Path) -> None:
             assert target.startswith("/dev/pts/") and stat.S_ISCHR(os.stat(target).st_mode)
             with serial.Serial(str(link_path), 9600, timeout=0.05) as port:
                 port.write(b"\r")
-                assert _read_to_prompt(port) == b"\n\r=> "
+                assert read_to_prompt(port) == b"\n\r=> "
         link.write(b"\r")
         link.read_until(PROMPT, timeout=10)
     finally:
@@ -281,7 +281,7 @@ def test_the_counters_survive_a_kill_after_the_save_interval(tmp_path):
         with serial.Serial(device, 9600, timeout=0.05) as port:
             for line in (b"HI\r", b"GC\r", b"GO\r"):
                 port.write(line)
-                _read_to_prompt(port, limit=400)
+                read_to_prompt(port, limit=400)
             time.sleep(1.5)  # > the save interval, idle
     finally:
         process.kill()
@@ -373,10 +373,10 @@ def test_realtime_paces_motion_and_ctrl_c_aborts(tmp_path):
 
     with serial.serial_for_url(f"bh8sim://?state={tmp_path / 'sim-store'}", timeout=None) as port:
         port.write(b"HI\r")
-        _read_to_prompt(port)
+        read_to_prompt(port)
         started = port.firmware.time
         port.write(b"GC\r")
-        _read_to_prompt(port)
+        read_to_prompt(port)
         simulated = port.firmware.time - started
     assert 0.6 <= simulated <= 1.4  # App. A, ±40 %
 
@@ -452,7 +452,7 @@ def test_unpaced_server_hears_ctrl_c_during_a_motion_that_never_ends(tmp_path):
             time.sleep(0.5)
             assert port.read(100) == b"HI"  # the echo as it arrived (SPEC.md §2); still initialising
             port.write(b"\x03")
-            assert _read_to_prompt(port) == b"\n\rERR 16384\n\r=> "  # within 100 reads of 0.05 s
+            assert read_to_prompt(port) == b"\n\rERR 16384\n\r=> "  # within 100 reads of 0.05 s
     finally:
         server.stop()
         thread.join(timeout=10)
@@ -494,15 +494,6 @@ def test_bad_object_spec_is_a_clear_error(tmp_path):
 # -- bh8sim:// --------------------------------------------------------------------------------
 
 
-def _read_to_prompt(port, limit: int = 100) -> bytes:
-    data = bytearray()
-    for _ in range(limit):
-        data += port.read(4096)
-        if data.endswith(PROMPT):
-            return bytes(data)
-    raise AssertionError(f"no prompt after {limit} reads: {bytes(data)!r}")
-
-
 def test_bh8sim_url_gives_a_pyserial_port(tmp_path):
     """bh8sim:// through serial.serial_for_url: write/read/in_waiting/reset_input_buffer/close,
     the store persists across opens (SPEC.md §3), the profile option works (SPEC.md §7)."""
@@ -512,7 +503,7 @@ def test_bh8sim_url_gives_a_pyserial_port(tmp_path):
     with serial.serial_for_url(url, baudrate=9600, timeout=1) as port:
         assert port.baudrate == 9600
         port.write(b"VERS\r")
-        reply = _read_to_prompt(port)
+        reply = read_to_prompt(port)
         assert reply.startswith(b"VERS\n\r") and b"4.4" in reply
         port.write(b"1FSET DP 3456\r1FSAVE\r")
         assert port.in_waiting > 0
@@ -523,7 +514,7 @@ def test_bh8sim_url_gives_a_pyserial_port(tmp_path):
     assert not port.is_open
     with serial.serial_for_url(url, timeout=1) as port:
         port.write(b"1FGET DP\r")
-        assert _read_to_prompt(port) == b"1FGET DP\n\r3456\n\r=> "
+        assert read_to_prompt(port) == b"1FGET DP\n\r3456\n\r=> "
 
 
 def test_bh8sim_read_timeout_is_simulated_and_never_hangs(tmp_path):
@@ -537,7 +528,7 @@ def test_bh8sim_read_timeout_is_simulated_and_never_hangs(tmp_path):
         port.write(b"HI\r")
         assert port.read(100) == b"HI"  # the motion outlasts the timeout
         assert port.firmware.time - started == pytest.approx(0.05, abs=0.003)
-        assert _read_to_prompt(port, limit=2000) == b"\n\r=> "
+        assert read_to_prompt(port, limit=2000) == b"\n\r=> "
         assert port.firmware.time - started > 0.1
         port.timeout = None
         port.write(b"\r")
@@ -606,14 +597,14 @@ def test_bh8sim_ctrl_c_between_reads_aborts_a_motion(tmp_path):
 
     with serial.serial_for_url(f"bh8sim://?state={tmp_path / 'store'}", timeout=None) as port:
         port.write(b"HI\r")
-        _read_to_prompt(port)
+        read_to_prompt(port)
         port.timeout = 0.2
         port.write(b"GC\r")
         assert port.read(100) == b"GC"
         port.write(b"\x03")
-        assert _read_to_prompt(port) == b"\n\rERR 16384\n\r=> "
+        assert read_to_prompt(port) == b"\n\rERR 16384\n\r=> "
         port.write(b"GFGET P\r")
-        positions = [int(v) for v in _read_to_prompt(port).split(b"\n\r")[1].split()]
+        positions = [int(v) for v in read_to_prompt(port).split(b"\n\r")[1].split()]
         assert all(1000 < p < 15000 for p in positions), positions
 
 
