@@ -11,7 +11,7 @@ from tqdm.auto import tqdm
 from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluate import run_episodes, summarize
-from bh8_gym.agents.pretrain import cloning_losses
+from bh8_gym.agents.pretrain import actor_cloning_loss
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
 
@@ -101,9 +101,8 @@ class KeepDemonstrationsCallback(BaseCallback):
         losses = []
         for _ in range(self.settings.keep_batches):
             batch = self._rng.integers(0, len(demonstrations.actions), self.settings.batch_size)
-            actor_loss, _ = cloning_losses(policy, torch.as_tensor(demonstrations.observations[batch]),
-                                           torch.as_tensor(demonstrations.actions[batch]),
-                                           torch.as_tensor(demonstrations.returns[batch]))
+            actor_loss = actor_cloning_loss(policy, torch.as_tensor(demonstrations.observations[batch]),
+                                            torch.as_tensor(demonstrations.actions[batch]))
             policy.optimizer.zero_grad()
             (weight * actor_loss).backward()
             policy.optimizer.step()

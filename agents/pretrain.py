@@ -132,13 +132,19 @@ def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: flo
                           np.concatenate(returns).astype(np.float32), successes, settings.episodes)
 
 
-def cloning_losses(policy, observations, actions, returns):
-    """(actor MSE to the script's actions, value MSE to its discounted returns) on one batch."""
+def actor_cloning_loss(policy, observations, actions):
+    """MSE of the policy's mean action (its deterministic action, Gaussian and gSDE alike) to the
+    script's actions, on one batch."""
     import torch
 
-    mean = policy.get_distribution(observations).distribution.mean  # Gaussian and gSDE alike
-    values = policy.predict_values(observations).flatten()
-    return (torch.nn.functional.mse_loss(mean, actions), torch.nn.functional.mse_loss(values, returns))
+    return torch.nn.functional.mse_loss(policy.get_distribution(observations).distribution.mean, actions)
+
+
+def value_fit_loss(policy, observations, returns):
+    """MSE of the critic's values to the script's discounted returns, on one batch."""
+    import torch
+
+    return torch.nn.functional.mse_loss(policy.predict_values(observations).flatten(), returns)
 
 
 def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, seed: int) -> dict[str, float]:
@@ -160,7 +166,8 @@ def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, see
         actor_sum = value_sum = 0.0
         for start in range(0, count, settings.batch_size):
             batch = order[start:start + settings.batch_size]
-            actor_loss, value_loss = cloning_losses(policy, observations[batch], actions[batch], returns[batch])
+            actor_loss = actor_cloning_loss(policy, observations[batch], actions[batch])
+            value_loss = value_fit_loss(policy, observations[batch], returns[batch])
             loss = actor_loss + settings.value_weight * value_loss
             optimizer.zero_grad()
             loss.backward()

@@ -274,10 +274,8 @@ class Trainer:
     def _vec_env(self):
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-        env_kwargs = dict(self.config["env_kwargs"])
-        if self.asymmetric_critic:
-            env_kwargs["privileged"] = True  # for the critic; the policy masks it from the actor
-        factories = [EnvFactory(self.config["env_id"], env_kwargs, seed=None) for _ in range(self.n_envs)]
+        factories = [EnvFactory(self.config["env_id"], self._training_env_kwargs, seed=None)
+                     for _ in range(self.n_envs)]
         if self.n_envs == 1:
             return DummyVecEnv(factories)
         return SubprocVecEnv([_WorkerEnvFactory(factory) for factory in factories])
@@ -294,18 +292,26 @@ class Trainer:
                          tensorboard_log=str(self.out_dir / "tb"), policy_kwargs=policy_kwargs,
                          **_hyperparameters(self.config))
 
-    def _warm_start(self, model) -> None:
-        """[pretrain]: clone the scripted grasp into the new model; pretrain.json says how well."""
+    @property
+    def _training_env_kwargs(self) -> dict:
+        """The training envs' keywords (the warm start records on the same env)."""
         env_kwargs = dict(self.config["env_kwargs"])
         if self.asymmetric_critic:
-            env_kwargs["privileged"] = True  # the same observations as the training envs
-        demonstrations = record(self.config["env_id"], env_kwargs, self.pretrain, gamma=float(model.gamma))
+            env_kwargs["privileged"] = True  # for the critic; the policy masks it from the actor
+        return env_kwargs
+
+    def _warm_start(self, model):
+        """[pretrain]: clone the scripted grasp into the new model; pretrain.json says how well.
+        Returns the demonstrations (also saved in the run for a resume to keep cloning them)."""
+        demonstrations = record(self.config["env_id"], self._training_env_kwargs, self.pretrain,
+                                gamma=float(model.gamma))
         save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)
         losses = clone(model, demonstrations, self.pretrain, seed=self.seed)
         write_json_atomic(self.out_dir / "pretrain.json", {
             "baseline": self.pretrain.baseline, "baseline_kwargs": self.pretrain.baseline_kwargs,
             "episodes": demonstrations.episodes, "successes": demonstrations.successes,
             "steps": int(len(demonstrations.actions)), **losses})
+        return demonstrations
 
     def _resume_model(self, env):
         algorithm = _algorithm_class(self.config["algorithm"])
@@ -447,8 +453,9 @@ class Trainer:
             env = self._vec_env()
             try:
                 model = self._resume_model(env) if resume else self._new_model(env)
+                demonstrations = None
                 if self.pretrain is not None and not resume:
-                    self._warm_start(model)
+                    demonstrations = self._warm_start(model)
                 remaining = total_timesteps - model.num_timesteps
                 if remaining <= 0:
                     return {**state, "num_timesteps": int(model.num_timesteps)}
@@ -462,9 +469,11 @@ class Trainer:
                 if self.progress:
                     callbacks.append(TrainingProgressCallback(total_timesteps))
                 if self.pretrain is not None and self.pretrain.keep_weight > 0:
+                    if demonstrations is None:  # a resumed run: the ones its warm start saved
+                        demonstrations = load_demonstrations(self.out_dir / DEMONSTRATIONS_FILE)
                     callbacks.append(KeepDemonstrationsCallback(
-                        load_demonstrations(self.out_dir / DEMONSTRATIONS_FILE), self.pretrain,
-                        rollout_steps=int(model.n_steps) * self.n_envs, seed=self.seed))
+                        demonstrations, self.pretrain, rollout_steps=int(model.n_steps) * self.n_envs,
+                        seed=self.seed))
                 callbacks.append(StopCallback(self))
                 model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
                             tb_log_name=self.config["algorithm"])
