@@ -31,7 +31,25 @@ def spread_counts_for(spec) -> int:
     return int(round(SPREAD_DEGREES.get(kind, 0.0) * SPREAD_COUNTS_PER_DEGREE))
 
 
-class LoopBaseline:
+class _LoopScript:
+    """What the scripted LOOP grasps share: the env's layout, its byte space, and the bytes a script
+    sets each cycle turned into the float action of the env's ContinuousActions view."""
+
+    def __init__(self, env):
+        base = env.unwrapped
+        self.layout = base.layout
+        space = base.action_space  # the env's byte space; the policy speaks floats of ContinuousActions
+        self._low = space.low.astype(np.float64)
+        self._high = space.high.astype(np.float64)
+        self._control_fields = self.layout.control_fields
+        self._bytes = np.zeros(len(self._control_fields), dtype=np.int64)
+
+    def _action(self) -> np.ndarray:
+        # within the env's byte space (the safety envelope clamps LCV): the action the env will run
+        return bytes_to_unit(np.clip(self._bytes, self._low, self._high), self._low, self._high)
+
+
+class LoopBaseline(_LoopScript):
     """Constant closing velocity and gain on the fingers; P control of the spread on LFAP.
 
     Byte values: `close_velocity` LCV (×LCVC/16 counts per sample; the safety envelope's 100 at
@@ -46,17 +64,11 @@ class LoopBaseline:
 
     def __init__(self, env, close_velocity: int = 100, gain: int = 255, spread_gain: float = 0.1,
                  spread_tolerance: int = 30):
-        base = env.unwrapped
-        self.layout = base.layout
+        super().__init__(env)
         self.close_velocity, self.gain = int(close_velocity), int(gain)
         self.spread_gain, self.spread_tolerance = float(spread_gain), int(spread_tolerance)
-        space = base.action_space  # the env's byte space; the policy speaks floats of ContinuousActions
-        self._low = space.low.astype(np.float64)
-        self._high = space.high.astype(np.float64)
-        self._control_fields = self.layout.control_fields
         self._spread_position = next((i for i, (m, name) in enumerate(self.layout.feedback_fields)
                                       if m == SPREAD_MOTOR and name == "LFAP"), None)
-        self._bytes = np.zeros(len(self._control_fields), dtype=np.int64)
         self.reset(env)
 
     def reset(self, env) -> None:
@@ -76,8 +88,7 @@ class LoopBaseline:
             else:
                 value = (self.close_velocity if spread_ready else 0) if name == "LCV" else self.gain
             self._bytes[index] = value
-        # within the env's byte space (the safety envelope clamps LCV): the action the env will run
-        return bytes_to_unit(np.clip(self._bytes, self._low, self._high), self._low, self._high)
+        return self._action()
 
 
 class SupervisoryBaseline:
@@ -138,7 +149,7 @@ class SupervisoryBaseline:
         return total, steps, info, grasp_seconds, grasp_seconds
 
 
-class SqueezeBaseline:
+class SqueezeBaseline(_LoopScript):
     """Close until contact, finger by finger, then squeeze to a strain target: the best LOOP grasp
     we could script from the host's feedback (LFS strain and LFAP position per finger).
 
@@ -161,25 +172,20 @@ class SqueezeBaseline:
                  stall_counts: int = 40, stall_cycles: int = 6, squeeze_after: float = 0.7,
                  strain_target: int = 205, squeeze_gain: float = 1.0, squeeze_velocity: int = 40,
                  hold_gain: int = 80, spread_gain: float = 0.1):
+        super().__init__(env)
         base = env.unwrapped
-        self.layout = base.layout
         self.close_velocity, self.close_gain = int(close_velocity), int(close_gain)
         self.contact_rise, self.stall_counts, self.stall_cycles = int(contact_rise), int(stall_counts), int(stall_cycles)
         self.squeeze_after = float(squeeze_after)
-        self.strain_target, self.squeeze_gain, self.squeeze_velocity = int(strain_target), float(squeeze_gain), int(squeeze_velocity)
+        self.strain_target = min(int(strain_target), base.safety.max_strain - 10)
+        self.squeeze_gain, self.squeeze_velocity = float(squeeze_gain), int(squeeze_velocity)
         self.hold_gain, self.spread_gain = int(hold_gain), float(spread_gain)
-        self.strain_target = min(self.strain_target, base.safety.max_strain - 10)
         self._cycle_seconds = float(base.cycle_seconds)
         self._grasp_seconds = float(base.arm.grasp_seconds)
-        space = base.action_space
-        self._low = space.low.astype(np.float64)
-        self._high = space.high.astype(np.float64)
-        self._control_fields = self.layout.control_fields
         feedback = self.layout.feedback_fields
         self._strain_index = {m: feedback.index((m, "LFS")) for m in FINGER_MOTORS if (m, "LFS") in feedback}
         self._position_index = {m: feedback.index((m, "LFAP")) for m in (*FINGER_MOTORS, SPREAD_MOTOR)
                                 if (m, "LFAP") in feedback}
-        self._bytes = np.zeros(len(self._control_fields), dtype=np.int64)
         self.reset(env)
 
     def reset(self, env) -> None:
@@ -221,8 +227,7 @@ class SqueezeBaseline:
             else:
                 value = self.close_velocity if name == "LCV" else self.close_gain
             self._bytes[index] = value
-        # within the env's byte space (the safety envelope clamps LCV): the action the env will run
-        return bytes_to_unit(np.clip(self._bytes, self._low, self._high), self._low, self._high)
+        return self._action()
 
 
 BASELINES = ("supervisory", "loop", "squeeze")
