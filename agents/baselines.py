@@ -1,34 +1,28 @@
 """Scripted grasps a BH8 user would write, evaluated by the same code on the same objects.
 
-`SupervisoryBaseline`: leave LOOP, set the spread for the object (SM), close with TC (or C), then
+`SupervisoryBaseline`: leave LOOP, set the spread (SM), close with TC (or C), then
 re-enter LOOP with zero velocity and zero gain (the finger worm drives hold the grasp unpowered,
 SPEC.md §1) while the arm lifts. Every command is GCL bytes written to the env's firmware, as a
 host would send them over the cable.
 
 `LoopBaseline`: the same grasp through RealTime LOOP as a policy on the env's float action space:
-spread driven to the object's setting by a proportional law on LFAP, then constant closing
+spread driven to its setting by a proportional law on LFAP, then constant closing
 velocity bytes with a constant gain on the fingers (the gain byte sets the grasp force, §6.1).
 
-Spread settings: F1/F2 opposite F3 (spread 0) for boxes, cylinders, capsules and mesh/URDF
-objects (a two-against-one wrap); a tripod (spread 60 degrees) for spheres.
+The spread: F1 and F2 opposite F3 (spread 0, a two-against-one wrap) for every object, so no
+script needs to know what it grasps. The tripod (60°) a BH8 user might set for a ball held none of
+the 20 validation spheres from the palm-down approach (the first finger to touch rolls the ball
+away), against 11-12 of 20 at spread 0 (`mixed-validation`, 200 episodes from seed 20000).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from bh8_gym.envs.scenes import episode_object
 from bh8_gym.envs.wrappers import bytes_to_unit
 from bh8_gym.loop_interface import END_TOLERANCE_S
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
-SPREAD_COUNTS_PER_DEGREE = 17.5  # BH8-262, SPEC.md §1
-SPREAD_DEGREES = {"sphere": 60.0}  # every other object kind: 0 (fingers opposite F3)
-
-
-def spread_counts_for(spec) -> int:
-    """The spread a BH8 user would set for the object (encoder counts)."""
-    kind = getattr(spec, "kind", None)
-    return int(round(SPREAD_DEGREES.get(kind, 0.0) * SPREAD_COUNTS_PER_DEGREE))
+GRASP_SPREAD = 0  # encoder counts: F1 and F2 opposite F3 (module docstring)
 
 
 class _LoopScript:
@@ -55,16 +49,18 @@ class LoopBaseline(_LoopScript):
     Byte values: `close_velocity` LCV (×LCVC/16 counts per sample; the safety envelope's 100 at
     LCVC 1 is ~6.3 counts per 256 µs sample, the fastest close it allows), `gain` LCPG (force at
     stall ∝ gain × velocity error, §6.1), `spread_gain` bytes of LCV per count of spread error,
-    `spread_tolerance` counts within which the fingers start closing. The defaults are the best of
-    a sweep on the validation objects (`mixed-validation`, 100 episodes each from seed 20000:
-    gain 255 65 %, 60 48 %, 40 41 %; 200 episodes: gain 255 59 %): the grasp phase is 0.8 s, and the
+    `spread_tolerance` counts within which the fingers start closing, `spread` its setting
+    (counts). The defaults are the best of a sweep on the validation objects (`mixed-validation`,
+    100 episodes each from seed 20000, spheres at a 60° spread then: gain 255 65 %, 60 48 %, 40 41 %;
+    200 episodes: gain 255 59 %, close velocity 60 54 %; every object at spread 0: 65 %): the grasp phase is 0.8 s, and the
     squeeze through the lift is gain × commanded velocity, which at gain 255 passes the strain limit
     in about one episode in ten (a safety stop, counted as a failure).
     """
 
     def __init__(self, env, close_velocity: int = 100, gain: int = 255, spread_gain: float = 0.1,
-                 spread_tolerance: int = 30):
+                 spread_tolerance: int = 30, spread: int = GRASP_SPREAD):
         super().__init__(env)
+        self.spread = int(spread)
         self.close_velocity, self.gain = int(close_velocity), int(gain)
         self.spread_gain, self.spread_tolerance = float(spread_gain), int(spread_tolerance)
         self._spread_position = next((i for i, (m, name) in enumerate(self.layout.feedback_fields)
@@ -72,7 +68,7 @@ class LoopBaseline(_LoopScript):
         self.reset(env)
 
     def reset(self, env) -> None:
-        self.spread_target = spread_counts_for(episode_object(env))
+        self.spread_target = self.spread
         self.spread_position = 0  # HI leaves the spread at 0 (SPEC.md §4)
 
     def act(self, observation, info=None) -> np.ndarray:
@@ -94,7 +90,8 @@ class LoopBaseline(_LoopScript):
 class SupervisoryBaseline:
     """SM (spread), GTC or GC, then hold (LOOP, zero velocity and gain) while the arm lifts."""
 
-    def __init__(self, env, close_command: str = "GTC"):
+    def __init__(self, env, close_command: str = "GTC", spread: int = GRASP_SPREAD):
+        self.spread = int(spread)
         if close_command not in ("GTC", "GC"):
             raise ValueError(f"close_command must be 'GTC' or 'GC', got {close_command!r}")
         self.close_command = close_command
@@ -120,8 +117,7 @@ class SupervisoryBaseline:
             frames.append(env.render())
         start = firmware.time
         firmware.transact(b"\x03")  # leave LOOP: the hand answers with a prompt
-        spread = spread_counts_for(episode_object(env))
-        self._command(firmware, f"SM {spread}")
+        self._command(firmware, f"SM {self.spread}")
         self._command(firmware, self.close_command)
         grasp_seconds = firmware.time - start
         if tracker is not None:
@@ -160,18 +156,23 @@ class SqueezeBaseline(_LoopScript):
     it there) until every finger is in contact or the grasp phase is `squeeze_after` through. Then
     each finger squeezes: LCV = `squeeze_gain` × (strain target − strain), clipped to
     ±`squeeze_velocity`, gain `hold_gain`, so the grip stays under the safety envelope's strain
-    limit through the lift and hold. The spread is held at the object's setting (`spread_counts_for`).
+    limit through the lift and hold. The spread is held at `spread` (counts) with gain byte
+    `spread_hold_gain`: the spread is back-driven by the grasp (SPEC.md §1), and held softly it opened
+    to 300 counts under a squeezed capsule, which then slipped out.
 
     The gains are the best of a sweep on the validation objects (`mixed-validation`, seeds from
     20000; 100 episodes: close/hold gain 25/80 55 %, 40/60 56 %, 40/80 61 %, 40/120 60 %, 60/80
     68 %; 200 episodes: 60/80 59 %, 90/80 56.5 %, 130/80 53 %, 255/80 56 %, 255/255 41.5 % with a
-    safety stop in one episode of four). A lower strain target (180) lost 15 points.
+    safety stop in one episode of four; all with spheres at a 60° spread and the spread held at the
+    hold gain). A lower strain target (180) lost 15 points; hold gain 160 with strain target 220
+    48 %. Spread 0 for every object: 64 %; and held at gain 255: 66.5 %, the default.
     """
 
     def __init__(self, env, close_velocity: int = 100, close_gain: int = 60, contact_rise: int = 10,
                  stall_counts: int = 40, stall_cycles: int = 6, squeeze_after: float = 0.7,
                  strain_target: int = 205, squeeze_gain: float = 1.0, squeeze_velocity: int = 40,
-                 hold_gain: int = 80, spread_gain: float = 0.1):
+                 hold_gain: int = 80, spread_gain: float = 0.1, spread: int = GRASP_SPREAD,
+                 spread_hold_gain: int = 255):
         super().__init__(env)
         base = env.unwrapped
         self.close_velocity, self.close_gain = int(close_velocity), int(close_gain)
@@ -180,6 +181,7 @@ class SqueezeBaseline(_LoopScript):
         self.strain_target = min(int(strain_target), base.safety.max_strain - 10)
         self.squeeze_gain, self.squeeze_velocity = float(squeeze_gain), int(squeeze_velocity)
         self.hold_gain, self.spread_gain = int(hold_gain), float(spread_gain)
+        self.spread, self.spread_hold_gain = int(spread), int(spread_hold_gain)
         self._cycle_seconds = float(base.cycle_seconds)
         self._grasp_seconds = float(base.arm.grasp_seconds)
         feedback = self.layout.feedback_fields
@@ -189,7 +191,7 @@ class SqueezeBaseline(_LoopScript):
         self.reset(env)
 
     def reset(self, env) -> None:
-        self.spread_target = spread_counts_for(episode_object(env))
+        self.spread_target = self.spread
         self.zero = None
         self.contact = {m: False for m in FINGER_MOTORS}
         self.history = {m: [] for m in FINGER_MOTORS}
@@ -217,7 +219,8 @@ class SqueezeBaseline(_LoopScript):
         spread_error = self.spread_target - position.get(SPREAD_MOTOR, 0)
         for index, (motor, name) in enumerate(self._control_fields):
             if motor == SPREAD_MOTOR:
-                value = int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV" else self.hold_gain
+                value = (int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV"
+                         else self.spread_hold_gain)
             elif squeezing:
                 error = self.strain_target - strain.get(motor, self.strain_target)
                 value = (int(np.clip(self.squeeze_gain * error, -self.squeeze_velocity, self.squeeze_velocity))
