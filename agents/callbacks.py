@@ -11,7 +11,7 @@ from tqdm.auto import tqdm
 from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluate import run_episodes, summarize
-from bh8_gym.agents.pretrain import actor_cloning_loss
+from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
 
@@ -80,7 +80,8 @@ class EvaluationCallback(BaseCallback):
 class KeepDemonstrationsCallback(BaseCallback):
     """[pretrain] keep_weight: after every rollout, `keep_batches` minibatches of the cloning loss
     on the script's demonstrations through the policy's own optimizer, weighted
-    keep_weight × keep_decay ** rollouts (from the run's start, so a resumed run goes on decaying)."""
+    keep_weight × keep_decay ** rollouts, never under keep_floor (from the run's start, so a resumed
+    run goes on decaying)."""
 
     def __init__(self, demonstrations, settings, rollout_steps: int, seed: int):
         super().__init__()
@@ -94,7 +95,7 @@ class KeepDemonstrationsCallback(BaseCallback):
 
     def _on_rollout_end(self) -> None:
         rollouts_before = max(self.num_timesteps // self.rollout_steps - 1, 0)  # num_timesteps counts this one
-        weight = self.settings.keep_weight * self.settings.keep_decay ** rollouts_before
+        weight = keep_weight_after(self.settings, rollouts_before)
         if weight < 1e-4:
             return
         policy, demonstrations = self.model.policy, self.demonstrations

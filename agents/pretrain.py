@@ -51,6 +51,9 @@ class PretrainSettings:
     keep_weight: float = 0.0
     keep_decay: float = 0.95
     keep_batches: int = 8
+    #: The weight never decays below this: without it, the default config held 52-62 % on the
+    #: validation objects to 700 k steps and then fell to 0 % once the weight had decayed to nothing.
+    keep_floor: float = 0.0
 
     @classmethod
     def from_table(cls, table: dict[str, Any]) -> PretrainSettings:
@@ -69,9 +72,16 @@ class PretrainSettings:
             raise ValueError(f"[pretrain] action_noise must be in [0, 1], got {settings.action_noise}")
         if settings.keep_weight < 0 or not 0 < settings.keep_decay <= 1 or settings.keep_batches < 1:
             raise ValueError("[pretrain] keep_weight must be >= 0, keep_decay in (0, 1], keep_batches >= 1")
+        if not 0 <= settings.keep_floor <= settings.keep_weight:
+            raise ValueError(f"[pretrain] keep_floor must be in [0, keep_weight], got {settings.keep_floor}")
         if not settings.learning_rate > 0:
             raise ValueError(f"[pretrain] learning_rate must be positive, got {settings.learning_rate}")
         return settings
+
+
+def keep_weight_after(settings: PretrainSettings, rollouts: int) -> float:
+    """The cloning loss's weight after `rollouts` rollouts of RL: decaying, never under the floor."""
+    return max(settings.keep_weight * settings.keep_decay ** rollouts, settings.keep_floor)
 
 
 @dataclass

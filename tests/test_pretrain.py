@@ -31,6 +31,8 @@ def _grasp_config(pretrain: dict) -> dict:
     ({"baseline": "nonsense"}, "a LOOP policy"),
     ({"episodes": 0}, "episodes must be at least 1"),
     ({"learning_rate": -1.0}, "learning_rate must be positive"),
+    ({"keep_weight": 0.5, "keep_floor": 0.6}, "keep_floor must be in"),
+    ({"keep_floor": -0.1}, "keep_floor must be in"),
 ])
 def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, message):
     from bh8_gym.agents.train import Trainer, TrainingError
@@ -126,6 +128,18 @@ def test_keeping_the_demonstrations_during_rl_and_resuming_with_them(tmp_path):
             weights += [event.value for event in accumulator.Scalars("pretrain/keep_weight")]
     # one rollout of 128 steps per run: weight 1 after the first, 0.95 after the resumed second
     assert weights == pytest.approx([1.0, 0.95]), weights
+
+
+def test_the_cloning_weight_decays_to_its_floor_and_stays_there():
+    """keep_floor: the default continued to 1 M steps lost the grasp once the weight had decayed
+    to nothing (docs/agents.md); with a floor the weight stops there."""
+    from bh8_gym.agents.pretrain import PretrainSettings, keep_weight_after
+
+    settings = PretrainSettings(keep_weight=1.0, keep_decay=0.9, keep_floor=0.3)
+    weights = [keep_weight_after(settings, n) for n in range(40)]
+    assert weights[:3] == pytest.approx([1.0, 0.9, 0.81])
+    assert all(a >= b for a, b in zip(weights, weights[1:])) and min(weights) == 0.3 == weights[-1]
+    assert keep_weight_after(PretrainSettings(keep_weight=1.0, keep_decay=0.9), 200) < 1e-4
 
 
 def test_action_noise_disturbs_the_executed_actions_but_records_the_scripts():

@@ -47,6 +47,7 @@ from typing import Iterable
 import numpy as np
 import pybullet_data
 
+from bh8_gym.envs.resting import resting_pose
 from bh8_gym.meshes import mesh_bounds
 from bh8_gym.objects import PRIMITIVE_KINDS, ObjectSpec, parse_object_file
 
@@ -76,7 +77,7 @@ class RandomUrdfRanges:
     """How pybullet_data's random URDFs are resized; mass and friction drawn per episode."""
 
     extent: tuple[float, float] = (0.05, 0.08)  # metres: largest bbox extent, fixed per model
-    # A third of the models are flat (height under 3 cm at that size): a palm-down hand whose
+    # Many models lie flat (under 3 cm high at rest at that size): a palm-down hand whose
     # fingertips must stay off the table cannot reach them (scenes.PlacementRanges), so flat
     # models are scaled up to this height, as long as their largest extent stays under max_extent.
     min_height: float = 0.04
@@ -138,7 +139,9 @@ def random_urdf_spec(name: str, rng: np.random.Generator, ranges: RandomUrdfRang
     mesh_path, mesh_scale = _urdf_single_mesh(urdf)
     low, high = obj_vertex_bounds(mesh_path)
     extents = (high - low) * mesh_scale
-    largest, height = float(np.max(extents)), float(extents[2])
+    # its height lying at rest on the table, as the scene sets it down (resting.py), not as loaded
+    lying = resting_pose(ObjectSpec(kind="mesh", path=str(mesh_path), scale=float(mesh_scale[0]))).extents
+    largest, height = float(np.max(extents)), float(lying[2] * mesh_scale[2])
     if not (np.isfinite(largest) and largest > 0 and height > 0):
         raise ValueError(f"random_urdfs model {name!r} has a degenerate mesh {str(mesh_path)!r}")
     extent = ranges.extent[0] + (ranges.extent[1] - ranges.extent[0]) * _unit_hash(name)

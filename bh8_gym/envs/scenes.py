@@ -12,8 +12,9 @@ the plant's TABLE moves under it per episode (placing a static box is a reset, m
 Position and yaw errors of the "arm's" placement are applied to the object, which is equivalent
 (only the hand-object relation matters on an unbounded table) and keeps the hand's pose fixed.
 
-The arm's approach is a top-down pick pipeline's (`PlacementRanges`): it centres the palm on the
-object's footprint, turns the hand so that the fingers close across the footprint's narrowest
+The arm's approach is a top-down pick pipeline's (`PlacementRanges`): it sees the object lying at
+rest (`resting.resting_orientation`: a mesh is set down in the pose it settles into), centres the
+palm on the object's footprint, turns the hand so that the fingers close across the footprint's narrowest
 width (F3 opposite F1 and F2 along the hand's y axis, the object's longest side along F1-F2), and
 stops the palm above the object's estimated top; each with the pipeline's error.
 """
@@ -35,6 +36,7 @@ from bh8_gym.envs.randomization import (
     sample_plant_parameters,
     sample_processing_time,
 )
+from bh8_gym.envs.resting import IDENTITY, resting_orientation
 from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.objects import ObjectLoader, ObjectSpec
 
@@ -152,8 +154,8 @@ class GraspScene:
 
     def grasp_yaw(self, spec: ObjectSpec, body: int) -> float:
         """The object's yaw (radians) at which its footprint is narrowest along the hand's closing
-        axis (y): a box turns its shorter side across, a round object needs no turn, a mesh is
-        measured at every GRASP_YAW_STEP_DEG (cached per shape)."""
+        axis (y): a box turns its shorter side across, a round object needs no turn, a mesh lying at
+        rest is measured at every GRASP_YAW_STEP_DEG (cached per shape)."""
         if spec.kind == "box":
             return 0.0 if spec.size[1] <= spec.size[0] else pi / 2.0
         if spec.kind in ("cylinder", "sphere", "capsule"):
@@ -161,10 +163,9 @@ class GraspScene:
         key = spec.shape_key
         if key not in self._grasp_yaws:
             p, client = self._p, self.client
-            widths = []
+            widths, rest = [], resting_orientation(spec)
             for degrees in range(0, 180, GRASP_YAW_STEP_DEG):
-                half = radians(degrees) / 2.0
-                p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), (0.0, 0.0, sin(half), cos(half)),
+                p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), _turned(radians(degrees), rest),
                                                   physicsClientId=client)
                 low, high = p.getAABB(body, -1, physicsClientId=client)
                 widths.append((round(high[1] - low[1], 4), degrees))  # 0.1 mm: ties go to the smaller yaw
@@ -176,8 +177,8 @@ class GraspScene:
         p, client = self._p, self.client
         self.remove_object()
         body = self.loader.create(episode.spec, (0.0, 0.0, -5.0), (0.0, 0.0, 0.0, 1.0))
-        half_yaw = (self.grasp_yaw(episode.spec, body) + episode.object_yaw) / 2.0
-        orientation = (0.0, 0.0, sin(half_yaw), cos(half_yaw))
+        orientation = _turned(self.grasp_yaw(episode.spec, body) + episode.object_yaw,
+                              resting_orientation(episode.spec))
         p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), orientation, physicsClientId=client)
         low, high = p.getAABB(body, -1, physicsClientId=client)
         height = high[2] - low[2]
@@ -206,6 +207,15 @@ class GraspScene:
             self._wrist_target[0] = self.wrist_start[0] + dx
             self._wrist_target[2] = self.wrist_start[2] + dz
             self.plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
+
+
+def _turned(yaw: float, orientation) -> tuple[float, float, float, float]:
+    """`orientation` turned by `yaw` radians about the world's vertical."""
+    half = yaw / 2.0
+    if orientation == IDENTITY:  # a primitive: exactly the plain yaw quaternion
+        return (0.0, 0.0, sin(half), cos(half))
+    return tuple(pybullet.multiplyTransforms((0.0, 0.0, 0.0), (0.0, 0.0, sin(half), cos(half)),
+                                             (0.0, 0.0, 0.0), orientation)[1])
 
 
 @dataclass(frozen=True)
