@@ -12,7 +12,7 @@ velocity bytes with a constant gain on the fingers (the gain byte sets the grasp
 The spread: F1 and F2 opposite F3 (spread 0, a two-against-one wrap) for every object, so no
 script needs to know what it grasps. The tripod (60°) a BH8 user might set for a ball held none of
 the 20 validation spheres from the palm-down approach (the first finger to touch rolls the ball
-away), against 11-12 of 20 at spread 0 (`mixed-validation`, 200 episodes from seed 20000).
+away), against 11-14 of 20 at spread 0 (`mixed-validation`, 200 episodes from seed 20000).
 """
 from __future__ import annotations
 
@@ -52,9 +52,9 @@ class LoopBaseline(_LoopScript):
     `spread_tolerance` counts within which the fingers start closing, `spread` its setting
     (counts). The defaults are the best of a sweep on the validation objects (`mixed-validation`,
     100 episodes each from seed 20000, spheres at a 60° spread then: gain 255 65 %, 60 48 %, 40 41 %;
-    200 episodes: gain 255 59 %, close velocity 60 54 %; every object at spread 0: 65 %): the grasp phase is 0.8 s, and the
-    squeeze through the lift is gain × commanded velocity, which at gain 255 passes the strain limit
-    in about one episode in ten (a safety stop, counted as a failure).
+    200 episodes: gain 255 59 %, close velocity 60 54 %; every object at spread 0: 65 %): the grasp
+    phase is 0.8 s, and the squeeze through the lift is gain × commanded velocity, which at gain 255
+    passes the strain limit in about one episode in ten (a safety stop, counted as a failure).
     """
 
     def __init__(self, env, close_velocity: int = 100, gain: int = 255, spread_gain: float = 0.1,
@@ -68,14 +68,13 @@ class LoopBaseline(_LoopScript):
         self.reset(env)
 
     def reset(self, env) -> None:
-        self.spread_target = self.spread
         self.spread_position = 0  # HI leaves the spread at 0 (SPEC.md §4)
 
     def act(self, observation, info=None) -> np.ndarray:
         block = (info or {}).get("feedback_block")
         if block and self._spread_position is not None:
             self.spread_position = self.layout.decode_feedback(block)[self._spread_position]
-        spread_error = self.spread_target - self.spread_position
+        spread_error = self.spread - self.spread_position
         spread_ready = abs(spread_error) <= self.spread_tolerance
         for index, (motor, name) in enumerate(self._control_fields):
             if motor == SPREAD_MOTOR:
@@ -191,7 +190,6 @@ class SqueezeBaseline(_LoopScript):
         self.reset(env)
 
     def reset(self, env) -> None:
-        self.spread_target = self.spread
         self.zero = None
         self.contact = {m: False for m in FINGER_MOTORS}
         self.history = {m: [] for m in FINGER_MOTORS}
@@ -216,7 +214,7 @@ class SqueezeBaseline(_LoopScript):
                 self.contact[m] = self.rising[m] >= 2 or stalled
         squeezing = all(self.contact.values()) or self.cycles * self._cycle_seconds >= self.squeeze_after * self._grasp_seconds
         self.cycles += 1
-        spread_error = self.spread_target - position.get(SPREAD_MOTOR, 0)
+        spread_error = self.spread - position.get(SPREAD_MOTOR, 0)
         for index, (motor, name) in enumerate(self._control_fields):
             if motor == SPREAD_MOTOR:
                 value = (int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV"

@@ -8,8 +8,9 @@ fingers. `resting_pose(spec)` drops the mesh once (at a fixed size: the pose it 
 does not depend on its scale) on a plane in a private PyBullet world and returns the orientation it
 comes to rest in and its extents lying so (cached per mesh file: the same mesh always rests the
 same way on one machine). Set down so, 4 of the 100 validation models still tilt more than 10° in
-a second (a marginal facet at their own size and friction), against 56 as loaded. Primitives are made lying still (a box on a face, a cylinder on its end,
-a capsule on its side), so they keep their orientation.
+a second (a marginal facet at their own size and friction), against 56 as loaded. Primitives are
+made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
+their orientation.
 """
 from __future__ import annotations
 
@@ -30,7 +31,6 @@ STILL_SPEED = 1e-3  # m/s and rad/s: at rest once both stay under this ...
 STILL_STEPS = 24  # ... for this many steps (0.1 s)
 SETTLE_FRICTION = 0.8  # the middle of the objects' friction range (envs.objects)
 WORLD_SHAPES = 256  # a fresh private world after this many shapes (PyBullet keeps each shape)
-
 
 
 class RestingPose(NamedTuple):

@@ -14,9 +14,9 @@ Position and yaw errors of the "arm's" placement are applied to the object, whic
 
 The arm's approach is a top-down pick pipeline's (`PlacementRanges`): it sees the object lying at
 rest (`resting.resting_orientation`: a mesh is set down in the pose it settles into), centres the
-palm on the object's footprint, turns the hand so that the fingers close across the footprint's narrowest
-width (F3 opposite F1 and F2 along the hand's y axis, the object's longest side along F1-F2), and
-stops the palm above the object's estimated top; each with the pipeline's error.
+palm on the object's footprint, turns the hand so that the fingers close across the footprint's
+narrowest width (F3 opposite F1 and F2 along the hand's y axis, the object's longest side along
+F1-F2), and stops the palm above the object's estimated top; each with the pipeline's error.
 """
 from __future__ import annotations
 
