@@ -1,0 +1,168 @@
+"""The ceiling: how much room a per-object choice of grasp leaves over the best fixed script.
+
+A family of scripted grasps (`FAMILY`: the LOOP and squeeze scripts of `agents/baselines.py` at
+settings that span closing velocity, gain, spread, strain target and softness) runs on the same
+episodes. Per object set it gives
+
+- the best single script (what a lab gets by picking one script on these objects),
+- the best script per object family (an oracle told the family: "balls like this, boxes like that"),
+- the union: episodes some script of the family holds (an oracle told the episode).
+
+The union minus the best single script is the room a policy that picks its grasp per object can
+win; `benchmarks/bench_ceiling.py` measures it and the README's results table reports it beside
+the policy. The same record of which script holds which episode labels the teacher of
+`agents/teacher.py` on the training objects.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+from tqdm import tqdm
+
+from bh8_gym.agents.baselines import make_baseline
+from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.evaluate import object_name, run_episodes
+from bh8_gym.agents.run_files import write_json_atomic
+from bh8_gym.envs.objects import object_family
+from bh8_gym.envs.scenes import episode_object
+
+SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts (SPEC.md §1)
+
+# name: (baseline, its settings). Every script is object-blind: it reads only the feedback blocks.
+FAMILY: dict[str, tuple[str, dict]] = {
+    "loop": ("loop", {}),
+    "loop-g80": ("loop", {"gain": 80}),
+    "loop-g160": ("loop", {"gain": 160}),
+    "loop-v50": ("loop", {"close_velocity": 50}),
+    "loop-v50-g80": ("loop", {"close_velocity": 50, "gain": 80}),
+    "loop-v70": ("loop", {"close_velocity": 70}),
+    "loop-s60": ("loop", {"spread": SPREAD_60}),
+    "loop-v50-s60": ("loop", {"close_velocity": 50, "spread": SPREAD_60}),
+    "squeeze": ("squeeze", {}),
+    "squeeze-t180": ("squeeze", {"strain_target": 180}),
+    "squeeze-t225": ("squeeze", {"strain_target": 225}),
+    "squeeze-v50": ("squeeze", {"close_velocity": 50}),
+    "squeeze-soft": ("squeeze", {"close_gain": 40, "hold_gain": 60}),
+    "squeeze-firm": ("squeeze", {"close_gain": 120, "hold_gain": 160}),
+    "squeeze-s60": ("squeeze", {"spread": SPREAD_60}),
+}
+
+
+def make_script(name: str, env):
+    """The family's script `name` for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
+    if name not in FAMILY:
+        raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)})")
+    baseline, settings = FAMILY[name]
+    return make_baseline(baseline, env, **settings)
+
+
+@dataclass
+class CeilingRecord:
+    """Which script held which episode of one object set (episodes from `seed` on)."""
+
+    object_set: str
+    seed: int
+    objects: list[str]
+    families: list[str]
+    success: dict[str, list[bool]] = field(default_factory=dict)
+
+    @property
+    def episodes(self) -> int:
+        return len(self.objects)
+
+    def merge(self, other: "CeilingRecord") -> None:
+        """Add another record's scripts, run on the same episodes."""
+        if (other.object_set, other.seed, other.objects) != (self.object_set, self.seed, self.objects):
+            raise ValueError(f"records of different episodes: {other.object_set} from {other.seed} "
+                             f"against {self.object_set} from {self.seed}")
+        self.success.update(other.success)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> "CeilingRecord":
+        record = cls(str(data["object_set"]), int(data["seed"]), [str(o) for o in data["objects"]],
+                     [str(f) for f in data["families"]],
+                     {str(k): [bool(s) for s in v] for k, v in data["success"].items()})
+        for name, row in record.success.items():
+            if len(row) != record.episodes:
+                raise ValueError(f"ceiling record: script {name!r} has {len(row)} episodes, not {record.episodes}")
+        return record
+
+
+def run_scripts(names: Iterable[str], object_set: str, episodes: int, seed: int,
+                env_kwargs: dict | None = None, progress: bool = False) -> CeilingRecord:
+    """Run each script of `names` on `episodes` episodes of `object_set` from `seed` (physics not
+    randomised unless `env_kwargs` says so)."""
+    kwargs = {"object_set": object_set, "randomize": False, **(env_kwargs or {})}
+    env = make_env("BH8Grasp-v0", kwargs)
+    record = None
+    try:
+        for name in tqdm(list(names), desc=object_set, unit="script", disable=None if progress else True):
+            results = run_episodes(None, env, episodes, seed=seed, baseline=make_script(name, env),
+                                   object_set=object_set)
+            if record is None:
+                record = CeilingRecord(object_set, seed, [r.object_name for r in results],
+                                       [r.family for r in results])
+            record.success[name] = [r.success for r in results]
+    finally:
+        env.close()
+    if record is None:
+        raise ValueError("no script to run")
+    return record
+
+
+def episode_objects(object_set: str, episodes: int, seed: int) -> tuple[list[str], list[str]]:
+    """The object name and family of each episode (without running any)."""
+    env = make_env("BH8Grasp-v0", {"object_set": object_set, "randomize": False})
+    names, families = [], []
+    try:
+        for episode in range(episodes):
+            env.reset(seed=seed + episode)
+            spec = episode_object(env)
+            names.append(object_name(spec))
+            families.append(object_family(spec))
+    finally:
+        env.close()
+    return names, families
+
+
+def summarize_ceiling(record: CeilingRecord, scripts: Sequence[str] | None = None) -> dict:
+    """Best single script, best script per family and the union, over `scripts` (default: all)."""
+    names = list(scripts or record.success)
+    if not names:
+        raise ValueError("no scripts in the ceiling record")
+    counts = {name: sum(record.success[name]) for name in names}
+    best = max(names, key=lambda name: (counts[name], -names.index(name)))
+    union = [any(record.success[name][i] for name in names) for i in range(record.episodes)]
+    per_family = {}
+    for family in sorted(set(record.families)):
+        rows = [i for i, f in enumerate(record.families) if f == family]
+        held = {name: sum(record.success[name][i] for i in rows) for name in names}
+        top = max(names, key=lambda name: (held[name], -names.index(name)))
+        per_family[family] = {"episodes": len(rows), "best_script": top, "held": held[top],
+                              "union": sum(union[i] for i in rows), "best_single_held": held[best]}
+    return {"object_set": record.object_set, "seed": record.seed, "episodes": record.episodes,
+            "scripts": counts, "best_single": best, "best_single_held": counts[best],
+            "per_family_best_held": sum(f["held"] for f in per_family.values()),
+            "union_held": sum(union), "per_family": per_family}
+
+
+def teacher_choice(record: CeilingRecord, preference: Sequence[str]) -> list[str | None]:
+    """Per episode, the first script of `preference` that holds it (None: none does)."""
+    return [next((name for name in preference if record.success[name][i]), None) for i in range(record.episodes)]
+
+
+def save_records(records: Sequence[CeilingRecord], path: Path) -> None:
+    write_json_atomic(Path(path), [r.to_json() for r in records])
+
+
+def load_records(path: Path) -> list[CeilingRecord]:
+    data = json.loads(Path(path).read_text())
+    if not isinstance(data, list):
+        raise ValueError(f"{path}: not a list of ceiling records")
+    return [CeilingRecord.from_json(item) for item in data]

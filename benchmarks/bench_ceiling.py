@@ -1,0 +1,126 @@
+"""The ceiling: how much room a grasp chosen per object leaves over the best fixed script.
+
+Runs every script of the ceiling family (agents/ceiling.py: LOOP and squeeze grasps at settings
+spanning closing velocity, gain, spread, strain target and softness; all object-blind) on the same
+episodes of each object set, and prints per set: each script's count, the best single script, the
+best script per object family (an oracle told the family), and the union (an oracle told the
+episode: some script holds it). With `--policy`, a `bh8 eval --out` report (or several) on the same
+episodes is set beside them and paired with the best single script (exact McNemar test).
+
+Run: python benchmarks/bench_ceiling.py --sets primitives-test test --episodes 1000 --jobs 2 \
+         --out runs/ceiling [--randomize] [--policy runs/eval/results.json]
+
+`--out` keeps ceiling.json (which script held which episode: `agents.ceiling.load_records`) and
+ceiling.md. Rerunning with the same --out reuses the scripts already recorded there.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from bh8_gym.agents.ceiling import (
+    FAMILY,
+    CeilingRecord,
+    load_records,
+    run_scripts,
+    save_records,
+    summarize_ceiling,
+)
+from bh8_gym.agents.evaluate import paired_comparison
+
+
+def _run(job):
+    name, object_set, episodes, seed, randomize = job
+    return run_scripts([name], object_set, episodes, seed, {"randomize": randomize}).to_json()
+
+
+def _policy_outcomes(path: Path, object_set: str, record: CeilingRecord) -> list[bool] | None:
+    report = json.loads((path / "results.json" if path.is_dir() else path).read_text())
+    rows = [e for e in report["episodes"] if e.get("object_set") == object_set]
+    if report.get("seed") != record.seed or len(rows) < record.episodes:
+        return None
+    rows = rows[:record.episodes]
+    if [r["object_name"] for r in rows] != record.objects:
+        raise ValueError(f"{path}: its {object_set} episodes had other objects than the ceiling's")
+    return [bool(r["success"]) for r in rows]
+
+
+def markdown(summary: dict, policies: dict[str, list[bool]], record: CeilingRecord) -> str:
+    n = summary["episodes"]
+
+    def pct(k: int) -> str:
+        return f"{k} ({k / n:.1%})"
+
+    lines = [f"### {summary['object_set']}: {n} episodes from seed {summary['seed']}", "",
+             "| grasp | held |", "|---|---:|"]
+    for name, held in sorted(summary["scripts"].items(), key=lambda item: -item[1]):
+        lines.append(f"| {name} | {pct(held)} |")
+    lines += [f"| **best single script** ({summary['best_single']}) | **{pct(summary['best_single_held'])}** |",
+              f"| best script per family (oracle told the family) | {pct(summary['per_family_best_held'])} |",
+              f"| **union** (some script holds it) | **{pct(summary['union_held'])}** |"]
+    best = record.success[summary["best_single"]]
+    for label, outcomes in policies.items():
+        paired = paired_comparison(outcomes, best)
+        lines.append(f"| policy {label} | {pct(sum(outcomes))}; against {summary['best_single']}: "
+                     f"{paired['only_ours']} only the policy, {paired['only_theirs']} only the script, "
+                     f"p = {paired['mcnemar_p']:.2g} |")
+    lines += ["", "| family | episodes | best script | held | best single script holds | union |",
+              "|---|---:|---|---:|---:|---:|"]
+    for family, row in summary["per_family"].items():
+        lines.append(f"| {family} | {row['episodes']} | {row['best_script']} | {row['held']} | "
+                     f"{row['best_single_held']} | {row['union']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sets", nargs="+", default=["primitives-test", "test"])
+    parser.add_argument("--episodes", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=100_000)
+    parser.add_argument("--scripts", nargs="+", default=list(FAMILY), choices=list(FAMILY))
+    parser.add_argument("--randomize", action="store_true", help="domain randomisation on")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--policy", type=Path, nargs="*", default=[], help="bh8 eval --out reports to pair")
+    args = parser.parse_args()
+
+    records = {}
+    if args.out is not None and (args.out / "ceiling.json").exists():
+        for record in load_records(args.out / "ceiling.json"):
+            if record.seed == args.seed and record.episodes == args.episodes and record.object_set in args.sets:
+                records[record.object_set] = record
+    jobs = [(name, object_set, args.episodes, args.seed, args.randomize) for object_set in args.sets
+            for name in args.scripts if object_set not in records or name not in records[object_set].success]
+    start = time.perf_counter()
+    with ProcessPoolExecutor(max(1, args.jobs)) as pool:
+        for data in pool.map(_run, jobs):
+            record = CeilingRecord.from_json(data)
+            if record.object_set in records:
+                records[record.object_set].merge(record)
+            else:
+                records[record.object_set] = record
+            if args.out is not None:  # after every script: an interrupted run keeps what it measured
+                args.out.mkdir(parents=True, exist_ok=True)
+                save_records(list(records.values()), args.out / "ceiling.json")
+    print(f"{len(jobs)} script runs in {time.perf_counter() - start:.0f} s"
+          f"{' (domain randomisation on)' if args.randomize else ''}")
+    parts = []
+    for object_set in args.sets:
+        record = records[object_set]
+        policies = {}
+        for path in args.policy:
+            outcomes = _policy_outcomes(path, object_set, record)
+            if outcomes is not None:
+                policies[str(path)] = outcomes
+        parts.append(markdown(summarize_ceiling(record, args.scripts), policies, record))
+    text = "\n\n".join(parts)
+    print(text)
+    if args.out is not None:
+        (args.out / "ceiling.md").write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
