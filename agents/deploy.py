@@ -190,6 +190,7 @@ class Deployment:
         previous = np.zeros(len(self._stop_values), dtype=np.int64)
         base, hand, on_cycles = self.interface, self.hand, self.clock == "cycles"
         processing_time = base.nominal_processing_time
+        history = base.new_history()  # the haptic history, built from this hand's blocks as the env builds it
         with self._stop_on_signals():
             try:
                 # Like the env's reset: an "A" block (no control data) starts the host's clock and
@@ -198,7 +199,7 @@ class Deployment:
                 feedback = self._exchange((), header=b"A")
                 elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
                            else time.monotonic() - start)
-                observation = base.observation_from_feedback(feedback.values, previous, elapsed)
+                observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
                 while self.policy_cycles < cycles and self._stop_request is None:
                     self._check_limits(feedback)
                     try:
@@ -214,7 +215,7 @@ class Deployment:
                     self.policy_cycles += 1
                     elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
                                else time.monotonic() - start)
-                    observation = base.observation_from_feedback(feedback.values, previous, elapsed)
+                    observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
                 self._check_limits(feedback)
                 if self._stop_request is not None:
                     reason = self._stop_request

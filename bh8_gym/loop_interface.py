@@ -30,6 +30,7 @@ from typing import Protocol, Sequence
 import gymnasium as gym
 import numpy as np
 
+from bh8_gym.haptic_history import HapticHistory
 from bh8_gym.protocol import BAUD_RATES, BITS_PER_BYTE, REALTIME_PROCESSING_S, SPREAD_MOTOR, seconds_per_byte
 from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
 from bh8_gym.safety import SafetyEnvelope
@@ -101,6 +102,7 @@ class LoopInterface:
         task: TaskObservation,
         safety: SafetyEnvelope,
         privileged: bool = False,
+        history: bool = False,
     ):
         if baud not in BAUD_RATES:
             raise ValueError(f"baud must be one of {BAUD_RATES} (manual §5.4.1 BAUD), got {baud!r}")
@@ -111,6 +113,7 @@ class LoopInterface:
             raise ValueError(f"episode_seconds must be > 0, got {episode_seconds!r}")
         check_switch("lfdpd", lfdpd)
         check_switch("privileged", privileged)
+        check_switch("history", history)
         self.layout = layout
         self.motors = layout.motors
         self.firmware_profile = layout.firmware
@@ -120,6 +123,10 @@ class LoopInterface:
         self.task = task
         self.safety = safety
         self.privileged = bool(privileged)
+        #: Whether the observation carries the episode's haptic history (haptic_history.py).
+        self.history = bool(history)
+        if self.history:  # checked here: a layout without finger strain and position has none to keep
+            HapticHistory(layout.feedback_fields, self.episode_seconds)
 
         prefix = "".join(str(m) for m in self.motors)
         settings = (
@@ -194,6 +201,8 @@ class LoopInterface:
         names += [f"prev_{name}{motor}" for motor, name in self.layout.control_fields]
         names.append("episode_fraction")
         names += self.task.names
+        if self.history:
+            names += HapticHistory(self.layout.feedback_fields, self.episode_seconds).names
         #: How many leading observation entries a host has on real hardware (all, unless privileged).
         self.host_observation_size = len(names)
         if self.privileged:
@@ -235,21 +244,32 @@ class LoopInterface:
 
     # ------------------------------------------------------------------ observation
 
+    def new_history(self) -> HapticHistory | None:
+        """A fresh haptic history for one stream of episodes (None when the observation has none):
+        the env keeps one, `bh8 deploy` another; reset it at each episode's first block."""
+        return HapticHistory(self.layout.feedback_fields, self.episode_seconds) if self.history else None
+
     def observation_from_feedback(
-        self, values: Sequence[int], previous_action: Sequence[int], elapsed: float
+        self, values: Sequence[int], previous_action: Sequence[int], elapsed: float,
+        history: HapticHistory | None = None,
     ) -> np.ndarray:
         """The observation a host builds from a decoded feedback block (host-side entries only).
 
         `values`: `layout.decode_feedback(block)`; `previous_action`: the control values last sent
-        (zeros before the first); `elapsed`: seconds since the episode's first block. This is what
-        `bh8 deploy` calls with the real hand's blocks; privileged entries are never included.
+        (zeros before the first); `elapsed`: seconds since the episode's first block; `history`:
+        the episode's `new_history()` when the observation has one (this block is added to it).
+        This is what `bh8 deploy` calls with the real hand's blocks; privileged entries are never
+        included.
         """
         out = np.zeros(self.host_observation_size, dtype=np.float32)
-        self.fill_host_observation(out, values, np.asarray(previous_action, dtype=np.float64).tolist(), elapsed)
+        self.fill_host_observation(out, values, np.asarray(previous_action, dtype=np.float64).tolist(), elapsed,
+                                   history)
         return out
 
-    def fill_host_observation(self, out: np.ndarray, values, previous_action: list, elapsed: float) -> None:
-        """Write the host-side entries into `out[:host_observation_size]`."""
+    def fill_host_observation(self, out: np.ndarray, values, previous_action: list, elapsed: float,
+                              history: HapticHistory | None = None) -> None:
+        """Write the host-side entries into `out[:host_observation_size]` (adding this block to
+        `history`, which an interface with `history=True` needs)."""
         # One store of plain floats (cheaper than numpy expressions on ~20 entries); the arithmetic is
         # numpy's float64, term for term, so the float32 observation is bit-identical.
         host = [(v - offset) * scale for v, offset, scale in zip(values, self._fb_offset_list, self._fb_scale_list)]
@@ -257,6 +277,12 @@ class LoopInterface:
                  for value, centre, half in zip(previous_action, self._action_centres, self._action_halves)]
         host.append(min(elapsed / self.episode_seconds, 1.0))
         host += self.task.values(values, elapsed)
+        if self.history:
+            if history is None:
+                raise ValueError("this observation carries a haptic history: pass the episode's "
+                                 "LoopInterface.new_history()")
+            history.observe(values, elapsed)
+            host += history.values()
         out[:self.host_observation_size] = host
 
     # ------------------------------------------------------------------ the host's clock

@@ -29,8 +29,7 @@ ON_EXIT = ["--on-exit", "none"]
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
 
 
-@pytest.fixture(scope="module")
-def policy_path(tmp_path_factory):
+def _export_random_policy(tmp_path_factory, env_kwargs: dict):
     """An untrained PPO actor exported with the real exporter; its last layer scaled up so the
     actions span the byte range (an untrained PPO's outputs are near zero) and fingers move."""
     import torch
@@ -39,7 +38,7 @@ def policy_path(tmp_path_factory):
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.agents.policy_file import export_sb3_policy
 
-    env = make_env(ENV_ID, {"randomize": False})
+    env = make_env(ENV_ID, {"randomize": False, **env_kwargs})
     try:
         model = PPO("MlpPolicy", env, seed=0, device="cpu", n_steps=64, batch_size=64, policy_kwargs={"net_arch": [16]})
     finally:
@@ -47,8 +46,19 @@ def policy_path(tmp_path_factory):
     with torch.no_grad():
         model.policy.action_net.weight.mul_(200.0)
     path = tmp_path_factory.mktemp("policy") / "random_grasp.npz"
-    return export_sb3_policy(model, path, metadata={"env_id": ENV_ID, "env_kwargs": {"randomize": False},
+    return export_sb3_policy(model, path, metadata={"env_id": ENV_ID, "env_kwargs": {"randomize": False, **env_kwargs},
                                                     "privileged": False})
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory):
+    return _export_random_policy(tmp_path_factory, {})
+
+
+@pytest.fixture(scope="module")
+def history_policy_path(tmp_path_factory):
+    """The same, on observations that carry the haptic history (bh8_gym/haptic_history.py)."""
+    return _export_random_policy(tmp_path_factory, {"history": True})
 
 
 def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[list[bytes], list[bytes], bool]:
@@ -65,8 +75,10 @@ def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[li
         controls, feedbacks = [info["control_block"]], [info["feedback_block"]]
         elapsed = base.next_elapsed(0.0, 1, base.nominal_processing_time)
         previous = np.zeros(len(base.layout.control_fields), dtype=np.int64)
+        history = base.interface.new_history()  # the host's own, as deploy keeps it
         if host_clock:
-            observation = base.observation_from_feedback(base.layout.decode_feedback(feedbacks[-1]), previous, elapsed)
+            observation = base.observation_from_feedback(base.layout.decode_feedback(feedbacks[-1]), previous, elapsed,
+                                                         history)
         done = False
         while not done:
             action, _ = policy.predict(observation, deterministic=True)
@@ -78,7 +90,7 @@ def _evaluate_in_process(policy, env_kwargs: dict, host_clock: bool) -> tuple[li
                 previous[:] = base.layout.decode_control(info["control_block"][1:])
                 elapsed = base.next_elapsed(elapsed, len(info["control_block"]), base.nominal_processing_time)
                 observation = base.observation_from_feedback(base.layout.decode_feedback(feedbacks[-1]), previous,
-                                                             elapsed)
+                                                             elapsed, history)
         stopped = "safety_stop" in info
         if not host_clock and not stopped:
             assert len(controls) - 1 == base.nominal_episode_steps()  # deploy's default cycle count
@@ -135,6 +147,26 @@ def test_deploy_on_served_env_is_byte_identical_to_in_process(policy_path, tmp_p
     for cycle, (ours, theirs) in enumerate(zip(feedbacks, served_feedbacks)):
         assert ours == theirs, f"feedback block of cycle {cycle}"
     # Not a trivial episode: the policy moved the hand (the feedback changed over the episode).
+    assert feedbacks[-1] != feedbacks[0]
+
+
+@pytest.mark.parametrize("randomize", [False, True], ids=["nominal", "randomized"])
+def test_deploy_builds_the_haptic_history_as_the_env_does(history_policy_path, tmp_path, randomize):
+    """Contract 2 with `history=True`: deploy keeps its own haptic history from the blocks it
+    receives, and every block of its episode equals the in-process episode's, so the history
+    (which feeds the policy's every action) is the env's, entry for entry."""
+    from bh8_gym.agents.policy_file import load_policy
+
+    env_kwargs = {"randomize": randomize, "history": True}
+    controls, feedbacks, stopped = _evaluate_in_process(load_policy(history_policy_path), env_kwargs,
+                                                        host_clock=randomize)
+    cycles = ["--cycles", str(len(controls) - 1)] if randomize else []
+    served_controls, served_feedbacks = _deploy_through_served_env(history_policy_path, env_kwargs,
+                                                                   tmp_path / "log.jsonl", cycles,
+                                                                   exit_code=3 if stopped else 0)
+    assert len(served_feedbacks) == len(feedbacks) + 1
+    assert served_controls[:len(controls)] == controls
+    assert served_feedbacks[:len(feedbacks)] == feedbacks
     assert feedbacks[-1] != feedbacks[0]
 
 

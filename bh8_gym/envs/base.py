@@ -139,6 +139,7 @@ class BH8LoopEnv(gym.Env):
         self._episode_started = False
         self._cycles = 0
         self._last_values: tuple[int, ...] = ()
+        self._history = interface.new_history()
 
     def _build_world(self) -> None:
         """The simulated hand in LOOP, the task's scene, the snapshot every reset restores."""
@@ -188,7 +189,7 @@ class BH8LoopEnv(gym.Env):
 
     def _observation(self, values) -> np.ndarray:
         obs = self._obs
-        self.interface.fill_host_observation(obs, values, self._prev_action, self._elapsed)
+        self.interface.fill_host_observation(obs, values, self._prev_action, self._elapsed, self._history)
         if self.interface.privileged:
             self.task.fill_privileged(obs[self._n_host:])
         return obs.copy()
@@ -220,6 +221,8 @@ class BH8LoopEnv(gym.Env):
         self._processing_time = self.firmware.processing_time
         self._elapsed = 0.0
         self._prev_action = [0] * len(self._prev_action)
+        if self._history is not None:
+            self._history.reset()
         self._cycles = 0
         self._episode_started = True
 

@@ -100,16 +100,17 @@ def grasp_interface(
     shake: bool = False,
     safety: SafetyEnvelope | Mapping | None = None,
     privileged: bool = False,
+    history: bool = False,
 ) -> LoopInterface:
     """BH8Grasp-v0's loop (the lead's design): motors 1-4 with LCV and LCPG, feedback LFS and LFAP;
-    the episode is the arm's schedule."""
+    the episode is the arm's schedule; `history` adds the haptic history (haptic_history.py)."""
     arm = grasp_arm(arm, shake)
     flags = MotorFlags(LCV=lcv, LCPG=lcpg, LFV=lfv, LFS=lfs, LFAP=lfap, LFDP=lfdp)
     return LoopInterface(
         layout=loop_layout(motors, flags, lft, firmware_profile), flags=flags, lcvc=lcvc, lfvc=lfvc,
         lfdpc=lfdpc, lfdpd=lfdpd, baud=baud, extra_motor_settings="", episode_seconds=arm.total_seconds,
         task=ArmPhaseObservation(arm), safety=dataclass_from(SafetyEnvelope, safety, "safety"),
-        privileged=privileged,
+        privileged=privileged, history=history,
     )
 
 
@@ -148,6 +149,14 @@ SIMULATOR_OPTIONS = {
     "BH8FingerReach-v0": frozenset({"targets", "tolerance", "success_bonus", "randomize", "randomization",
                                     "plant_parameters", "render_mode", "render_size"}),
 }
+
+
+def host_options(env_id: str, env_kwargs: Mapping[str, Any] | None) -> dict:
+    """The keyword arguments of `env_kwargs` that shape the host's side (everything but
+    SIMULATOR_OPTIONS): an env built for another object set or physics must share them to run
+    the same policy."""
+    simulator = SIMULATOR_OPTIONS.get(env_id, frozenset())
+    return {k: v for k, v in (env_kwargs or {}).items() if k not in simulator}
 
 
 def interface_for(env_id: str, env_kwargs: Mapping[str, Any] | None = None) -> LoopInterface:
