@@ -58,13 +58,21 @@ class LoopBaseline(_LoopScript):
     """
 
     def __init__(self, env, close_velocity: int = 100, gain: int = 255, spread_gain: float = 0.1,
-                 spread_tolerance: int = 30, spread: int = GRASP_SPREAD):
+                 spread_tolerance: int = 30, spread: int = GRASP_SPREAD, strain_limit: int | None = None,
+                 limit_gain: float = 2.0, capped_gain: int | None = None):
         super().__init__(env)
         self.spread = int(spread)
         self.close_velocity, self.gain = int(close_velocity), int(gain)
         self.spread_gain, self.spread_tolerance = float(spread_gain), int(spread_tolerance)
-        self._spread_position = next((i for i, (m, name) in enumerate(self.layout.feedback_fields)
+        self.strain_limit = None if strain_limit is None else int(strain_limit)
+        self.limit_gain = float(limit_gain)
+        #: With `strain_limit`: a finger over the limit gets this gain byte instead of backing off
+        #: its velocity (None: back off the velocity, keep the gain).
+        self.capped_gain = None if capped_gain is None else int(capped_gain)
+        feedback = self.layout.feedback_fields
+        self._spread_position = next((i for i, (m, name) in enumerate(feedback)
                                       if m == SPREAD_MOTOR and name == "LFAP"), None)
+        self._strain_index = {m: feedback.index((m, "LFS")) for m in FINGER_MOTORS if (m, "LFS") in feedback}
         self.reset(env)
 
     def reset(self, env) -> None:
@@ -72,8 +80,9 @@ class LoopBaseline(_LoopScript):
 
     def act(self, observation, info=None) -> np.ndarray:
         block = (info or {}).get("feedback_block")
-        if block and self._spread_position is not None:
-            self.spread_position = self.layout.decode_feedback(block)[self._spread_position]
+        values = self.layout.decode_feedback(block) if block else None
+        if values and self._spread_position is not None:
+            self.spread_position = values[self._spread_position]
         spread_error = self.spread - self.spread_position
         spread_ready = abs(spread_error) <= self.spread_tolerance
         for index, (motor, name) in enumerate(self._control_fields):
@@ -81,7 +90,14 @@ class LoopBaseline(_LoopScript):
                 value = (int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV"
                          else self.gain)
             else:
-                value = (self.close_velocity if spread_ready else 0) if name == "LCV" else self.gain
+                over = (self.strain_limit is not None and values is not None and motor in self._strain_index
+                        and values[self._strain_index[motor]] > self.strain_limit)
+                if name == "LCV":
+                    value = self.close_velocity if spread_ready else 0
+                    if over and self.capped_gain is None:  # over the limit, back off in proportion
+                        value = min(value, int(self.limit_gain * (self.strain_limit - values[self._strain_index[motor]])))
+                else:
+                    value = self.capped_gain if over and self.capped_gain is not None else self.gain
             self._bytes[index] = value
         return self._action()
 
@@ -171,8 +187,15 @@ class SqueezeBaseline(_LoopScript):
                  stall_counts: int = 40, stall_cycles: int = 6, squeeze_after: float = 0.7,
                  strain_target: int = 205, squeeze_gain: float = 1.0, squeeze_velocity: int = 40,
                  hold_gain: int = 80, spread_gain: float = 0.1, spread: int = GRASP_SPREAD,
-                 spread_hold_gain: int = 255):
+                 spread_hold_gain: int = 255, wrap_velocity: int | None = None, wrap_gain: int = 255,
+                 spread_tolerance: int = 30):
         super().__init__(env)
+        #: Instead of squeezing to the strain target once every finger touches: keep closing every
+        #: finger at this velocity with `wrap_gain` (the outer links break away and wrap round
+        #: the object, §9.3). None: squeeze.
+        self.wrap_velocity = None if wrap_velocity is None else int(wrap_velocity)
+        self.wrap_gain = int(wrap_gain)
+        self.spread_tolerance = int(spread_tolerance)
         base = env.unwrapped
         self.close_velocity, self.close_gain = int(close_velocity), int(close_gain)
         self.contact_rise, self.stall_counts, self.stall_cycles = int(contact_rise), int(stall_counts), int(stall_cycles)
@@ -195,6 +218,7 @@ class SqueezeBaseline(_LoopScript):
         self.history = {m: [] for m in FINGER_MOTORS}
         self.rising = {m: 0 for m in FINGER_MOTORS}  # cycles running with the strain risen
         self.cycles = 0
+        self.started = False  # the fingers close once the spread is at its setting
 
     def act(self, observation, info=None) -> np.ndarray:
         block = (info or {}).get("feedback_block")
@@ -203,7 +227,13 @@ class SqueezeBaseline(_LoopScript):
         position = {m: values[i] for m, i in self._position_index.items()} if values else {}
         if self.zero is None:
             self.zero = dict(strain)
+        spread_error = self.spread - position.get(SPREAD_MOTOR, 0)
+        # The fingers wait for the spread to reach its setting (a finger closing while the spread
+        # turns stalls against its neighbour and would read as a contact).
+        self.started = self.started or abs(spread_error) <= self.spread_tolerance
         for m in FINGER_MOTORS:
+            if not self.started:
+                break
             if m in position:
                 self.history[m].append(position[m])
             if not self.contact[m]:
@@ -214,17 +244,18 @@ class SqueezeBaseline(_LoopScript):
                 self.contact[m] = self.rising[m] >= 2 or stalled
         squeezing = all(self.contact.values()) or self.cycles * self._cycle_seconds >= self.squeeze_after * self._grasp_seconds
         self.cycles += 1
-        spread_error = self.spread - position.get(SPREAD_MOTOR, 0)
         for index, (motor, name) in enumerate(self._control_fields):
             if motor == SPREAD_MOTOR:
                 value = (int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV"
                          else self.spread_hold_gain)
+            elif squeezing and self.wrap_velocity is not None:
+                value = self.wrap_velocity if name == "LCV" else self.wrap_gain
             elif squeezing:
                 error = self.strain_target - strain.get(motor, self.strain_target)
                 value = (int(np.clip(self.squeeze_gain * error, -self.squeeze_velocity, self.squeeze_velocity))
                          if name == "LCV" else self.hold_gain)
-            elif self.contact[motor]:
-                value = 0 if name == "LCV" else self.hold_gain
+            elif self.contact[motor] or not self.started:
+                value = 0 if name == "LCV" else (self.hold_gain if self.started else self.close_gain)
             else:
                 value = self.close_velocity if name == "LCV" else self.close_gain
             self._bytes[index] = value
@@ -245,3 +276,35 @@ def make_baseline(name: str, env, **settings):
         return classes[name](env, **settings)
     except TypeError as error:
         raise ValueError(f"baseline {name!r}: {error}") from None
+
+
+SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts (SPEC.md §1)
+
+# The ceiling family (agents/ceiling.py measures it): name -> (baseline, its settings). Every script is
+# object-blind: it reads only the feedback blocks.
+FAMILY: dict[str, tuple[str, dict]] = {
+    "loop": ("loop", {}),
+    "loop-g80": ("loop", {"gain": 80}),
+    "loop-g160": ("loop", {"gain": 160}),
+    "loop-v50": ("loop", {"close_velocity": 50}),
+    "loop-v50-g80": ("loop", {"close_velocity": 50, "gain": 80}),
+    "loop-v70": ("loop", {"close_velocity": 70}),
+    "loop-s60": ("loop", {"spread": SPREAD_60}),
+    "loop-v50-s60": ("loop", {"close_velocity": 50, "spread": SPREAD_60}),
+    "squeeze": ("squeeze", {}),
+    "squeeze-g255": ("squeeze", {"close_gain": 255}),  # closes as "loop" does until each finger touches
+    "squeeze-t180": ("squeeze", {"strain_target": 180}),
+    "squeeze-t225": ("squeeze", {"strain_target": 225}),
+    "squeeze-v50": ("squeeze", {"close_velocity": 50}),
+    "squeeze-soft": ("squeeze", {"close_gain": 40, "hold_gain": 60}),
+    "squeeze-firm": ("squeeze", {"close_gain": 120, "hold_gain": 160}),
+    "squeeze-s60": ("squeeze", {"spread": SPREAD_60}),
+}
+
+
+def make_script(name: str, env):
+    """The family's script `name` for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
+    if name not in FAMILY:
+        raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)})")
+    baseline, settings = FAMILY[name]
+    return make_baseline(baseline, env, **settings)

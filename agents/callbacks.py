@@ -52,7 +52,7 @@ class EvaluationCallback(BaseCallback):
     def evaluate(self) -> dict:
         config = self.trainer.config
         if self._env is None:
-            self._env = make_env(config["env_id"], config["eval_env_kwargs"])
+            self._env = make_env(config["env_id"], self.trainer.evaluation_env_kwargs)
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
         policy = HostObservationModel(self.model) if host_observation_count(self.model) else self.model
         results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed)

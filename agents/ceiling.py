@@ -1,8 +1,7 @@
 """The ceiling: how much room a per-object choice of grasp leaves over the best fixed script.
 
-A family of scripted grasps (`FAMILY`: the LOOP and squeeze scripts of `agents/baselines.py` at
-settings that span closing velocity, gain, spread, strain target and softness) runs on the same
-episodes. Per object set it gives
+A family of scripted grasps (`agents/baselines.FAMILY`: the LOOP and squeeze scripts at settings
+that span closing velocity, gain, spread, strain target and softness) runs on the same episodes. Per object set it gives
 
 - the best single script (what a lab gets by picking one script on these objects),
 - the best script per object family (an oracle told the family: "balls like this, boxes like that"),
@@ -22,42 +21,12 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from bh8_gym.agents.baselines import make_baseline
+from bh8_gym.agents.baselines import FAMILY, make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluate import object_name, run_episodes
 from bh8_gym.agents.run_files import write_json_atomic
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
-
-SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts (SPEC.md §1)
-
-# name: (baseline, its settings). Every script is object-blind: it reads only the feedback blocks.
-FAMILY: dict[str, tuple[str, dict]] = {
-    "loop": ("loop", {}),
-    "loop-g80": ("loop", {"gain": 80}),
-    "loop-g160": ("loop", {"gain": 160}),
-    "loop-v50": ("loop", {"close_velocity": 50}),
-    "loop-v50-g80": ("loop", {"close_velocity": 50, "gain": 80}),
-    "loop-v70": ("loop", {"close_velocity": 70}),
-    "loop-s60": ("loop", {"spread": SPREAD_60}),
-    "loop-v50-s60": ("loop", {"close_velocity": 50, "spread": SPREAD_60}),
-    "squeeze": ("squeeze", {}),
-    "squeeze-t180": ("squeeze", {"strain_target": 180}),
-    "squeeze-t225": ("squeeze", {"strain_target": 225}),
-    "squeeze-v50": ("squeeze", {"close_velocity": 50}),
-    "squeeze-soft": ("squeeze", {"close_gain": 40, "hold_gain": 60}),
-    "squeeze-firm": ("squeeze", {"close_gain": 120, "hold_gain": 160}),
-    "squeeze-s60": ("squeeze", {"spread": SPREAD_60}),
-}
-
-
-def make_script(name: str, env):
-    """The family's script `name` for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
-    if name not in FAMILY:
-        raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)})")
-    baseline, settings = FAMILY[name]
-    return make_baseline(baseline, env, **settings)
-
 
 @dataclass
 class CeilingRecord:

@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from bh8_gym.agents.baselines import make_baseline
+from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
 from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations
@@ -360,10 +360,17 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
     return Path(path)
 
 
+def scripted_grasps() -> tuple[str, ...]:
+    """What `--baseline` takes: the baselines, then the ceiling family's scripts."""
+    return tuple(dict.fromkeys((*BASELINES, *FAMILY)))
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("policy", nargs="?", type=Path, help="policy file: SB3 .zip or exported .npz")
-    source.add_argument("--baseline", choices=("supervisory", "loop", "squeeze"), help="evaluate a scripted baseline")
+    source.add_argument("--baseline", choices=scripted_grasps(), metavar="SCRIPT",
+                        help="evaluate a scripted baseline: supervisory, loop, squeeze, or any script of the "
+                             "ceiling family (agents/ceiling.py: " + ", ".join(FAMILY) + ")")
     parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
     parser.add_argument("--episodes", type=int, default=50, help="episodes (default: %(default)s)")
     parser.add_argument("--objects", default=DEFAULT_EVALUATION_SETS,
@@ -442,7 +449,8 @@ def run(args: argparse.Namespace) -> int:
             env = make_env(env_id, set_kwargs[name])
             try:
                 if args.baseline is not None:
-                    baseline = make_baseline(args.baseline, env)
+                    baseline = (make_script(args.baseline, env) if args.baseline in FAMILY
+                                else make_baseline(args.baseline, env))
                 results += run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
                                         progress=not args.no_progress, object_set=name)
             finally:

@@ -54,6 +54,13 @@ class PretrainSettings:
     #: The weight never decays below this: without it, the default config held 52-62 % on the
     #: validation objects to 700 k steps and then fell to 0 % once the weight had decayed to nothing.
     keep_floor: float = 0.0
+    #: A teacher instead of `baseline` (agents/teacher.py): scripts of the ceiling family
+    #: (agents/ceiling.py), in order of preference; each training episode is taught by the first
+    #: that holds it, distilled in `dagger_iterations` DAgger iterations (the teacher's action
+    #: executed with probability dagger_beta ** iteration).
+    teacher: tuple = ()
+    dagger_iterations: int = 1
+    dagger_beta: float = 0.5
 
     @classmethod
     def from_table(cls, table: dict[str, Any]) -> PretrainSettings:
@@ -61,7 +68,18 @@ class PretrainSettings:
         unknown = sorted(set(table) - known)
         if unknown:
             raise ValueError(f"[pretrain] has no {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+        if "teacher" in table:
+            table = {**table, "teacher": tuple(table["teacher"]) if isinstance(table["teacher"], (list, tuple))
+                     else table["teacher"]}
         settings = cls(**table)
+        if settings.teacher:
+            from bh8_gym.agents.baselines import FAMILY
+
+            if not (isinstance(settings.teacher, tuple) and all(name in FAMILY for name in settings.teacher)):
+                raise ValueError(f"[pretrain] teacher must be a list of the ceiling family's scripts "
+                                 f"({', '.join(FAMILY)}), got {settings.teacher!r}")
+            if not 1 <= settings.dagger_iterations <= 20 or not 0 <= settings.dagger_beta <= 1:
+                raise ValueError("[pretrain] dagger_iterations must be 1-20 and dagger_beta in [0, 1]")
         if settings.baseline not in LOOP_BASELINES:
             raise ValueError(f"[pretrain] baseline must be one of {LOOP_BASELINES} (a LOOP policy), "
                              f"got {settings.baseline!r}")
@@ -131,15 +149,20 @@ def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: flo
                 rewards.append(float(reward))
                 done = terminated or truncated
             successes += bool(info.get("is_success"))
-            discounted, running = np.empty(len(rewards)), 0.0
-            for step in range(len(rewards) - 1, -1, -1):  # the env's end is terminal: no bootstrap
-                running = rewards[step] + gamma * running
-                discounted[step] = running
-            returns.append(discounted)
+            returns.append(discounted_returns(rewards, gamma))
     finally:
         env.close()
     return Demonstrations(np.asarray(observations, dtype=np.float32), np.asarray(actions, dtype=np.float32),
                           np.concatenate(returns).astype(np.float32), successes, settings.episodes)
+
+
+def discounted_returns(rewards, gamma: float) -> np.ndarray:
+    """Each step's discounted return; the env's end is terminal (no bootstrap past it)."""
+    discounted, running = np.empty(len(rewards)), 0.0
+    for step in range(len(rewards) - 1, -1, -1):
+        running = rewards[step] + gamma * running
+        discounted[step] = running
+    return discounted
 
 
 def actor_cloning_loss(policy, observations, actions):

@@ -60,6 +60,7 @@ from bh8_gym.agents.run_files import (
 )
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.envs import ENV_IDS
+from bh8_gym.envs.interfaces import host_options
 
 ALGORITHMS = ("PPO", "SAC")
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
@@ -262,12 +263,19 @@ class Trainer:
             "config": config,
         }
 
+    @property
+    def evaluation_env_kwargs(self) -> dict:
+        """The validation env's keywords: eval_env_kwargs over the training env's host options
+        (LOOP layout, history, safety: what shapes the policy's observation and action), so the
+        policy is validated on the observation it was trained on."""
+        return {**host_options(self.config["env_id"], self.config["env_kwargs"]), **self.config["eval_env_kwargs"]}
+
     def _check_env_kwargs(self) -> None:
         """Build the training and evaluation envs once here, so that a typo in the config is an
         error naming it rather than a SubprocVecEnv worker dying with a broken pipe."""
-        for table in ("env_kwargs", "eval_env_kwargs"):
+        for table, kwargs in (("env_kwargs", self.config["env_kwargs"]), ("eval_env_kwargs", self.evaluation_env_kwargs)):
             try:
-                make_env(self.config["env_id"], self.config[table]).close()
+                make_env(self.config["env_id"], kwargs).close()
             except ValueError as error:
                 raise TrainingError(f"{table}: {error}") from None
 
@@ -303,6 +311,14 @@ class Trainer:
     def _warm_start(self, model):
         """[pretrain]: clone the scripted grasp into the new model; pretrain.json says how well.
         Returns the demonstrations (also saved in the run for a resume to keep cloning them)."""
+        if self.pretrain.teacher:
+            from bh8_gym.agents.teacher import distill
+
+            demonstrations, summary = distill(model, self.config["env_id"], self._training_env_kwargs, self.pretrain,
+                                              seed=self.seed, progress=self.progress)
+            save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)
+            write_json_atomic(self.out_dir / "pretrain.json", {**summary, "steps": int(len(demonstrations.actions))})
+            return demonstrations
         demonstrations = record(self.config["env_id"], self._training_env_kwargs, self.pretrain,
                                 gamma=float(model.gamma))
         save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)

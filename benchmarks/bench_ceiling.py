@@ -21,8 +21,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from bh8_gym.agents.baselines import FAMILY
 from bh8_gym.agents.ceiling import (
-    FAMILY,
     CeilingRecord,
     load_records,
     run_scripts,

@@ -154,3 +154,34 @@ def test_action_noise_disturbs_the_executed_actions_but_records_the_scripts():
     assert not np.array_equal(clean.observations[:50], noisy.observations[:50])
     levels = np.unique(np.round(noisy.actions[:, 0], 4))
     assert len(levels) < 40, "labels must be the script's quantised bytes, not noisy floats"
+
+
+def test_dagger_labels_the_students_own_states_with_the_teachers_actions():
+    """agents/teacher.py: iteration 0 runs the teacher alone (every executed action is its label);
+    a later iteration with beta 0 runs the student alone, and the teacher's script, reading the
+    same blocks, still labels every step it visits."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.env_factory import make_env
+    from bh8_gym.agents.pretrain import PretrainSettings
+    from bh8_gym.agents.teacher import distill
+
+    kwargs = {"object_set": "primitives-train", "randomize": False, "history": True}
+    env = make_env(GRASP, kwargs)
+    try:
+        model = PPO("MlpPolicy", env, seed=0, device="cpu", n_steps=64, batch_size=64,
+                    policy_kwargs={"net_arch": [32], "log_std_init": -3.0})
+    finally:
+        env.close()
+    settings = PretrainSettings(teacher=("squeeze", "loop"), episodes=2, epochs=2, seed=11,
+                                dagger_iterations=2, dagger_beta=0.0)
+    reports = []
+    demonstrations, summary = distill(model, GRASP, kwargs, settings, seed=0, report=reports.append)
+    assert summary["episodes"] == 2 and sum(summary["chosen"].values()) == 2
+    first, second = summary["iterations"]
+    assert first["beta"] == 1.0 and second["beta"] == 0.0
+    assert second["steps"] == len(demonstrations.actions) > first["steps"] > 500
+    assert demonstrations.observations.shape[1] == model.observation_space.shape[0]
+    # the teacher's labels are the float actions its scripts produce: inside [-1, 1]
+    assert np.all(np.abs(demonstrations.actions) <= 1.0 + 1e-6)
+    assert any("DAgger 2/2" in line for line in reports)

@@ -23,7 +23,9 @@ from bh8_gym.settings import dataclass_from
 
 SHAKE_AMPLITUDE = 0.01  # metres; `shake=True` shakes the wrist ±1 cm at 2 Hz during hold
 # Privileged (simulation-only) entries of the grasp observation, in order (`tasks.GraspTask` fills them).
-GRASP_PRIVILEGED_NAMES = ("object_dx", "object_dy", "object_dz", "object_rise", "contact_f1", "contact_f2", "contact_f3")
+GRASP_PRIVILEGED_NAMES = ("object_dx", "object_dy", "object_dz", "object_rise", "contact_f1", "contact_f2", "contact_f3",
+                          "object_box", "object_capsule", "object_cylinder", "object_sphere", "object_mesh",
+                          "object_width_x", "object_width_y", "object_height", "object_mass", "object_friction")
 
 
 class ArmPhaseObservation:

@@ -122,6 +122,7 @@ class GraspScene:
         self.table_top = 0.0
         self.object_body: int | None = None
         self.object_rest_z = 0.0
+        self.object_extents = (0.0, 0.0, 0.0)
         self._grasp_yaws: dict[tuple, float] = {}
         self.episode: GraspEpisode | None = None
         self.start_time: float | None = None
@@ -182,6 +183,8 @@ class GraspScene:
         p.resetBasePositionAndOrientation(body, (0.0, 0.0, -5.0), orientation, physicsClientId=client)
         low, high = p.getAABB(body, -1, physicsClientId=client)
         height = high[2] - low[2]
+        #: The object's extents as placed (x, y across the fingers, height), metres.
+        self.object_extents = (high[0] - low[0], high[1] - low[1], height)
         bottom_offset = -5.0 - low[2]
         centre_x, centre_y = (low[0] + high[0]) / 2.0, (low[1] + high[1]) / 2.0  # the footprint's centre
         palm_above_table = max(height + episode.top_error + KNUCKLE_HEIGHT + episode.clearance,

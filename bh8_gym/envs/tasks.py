@@ -21,6 +21,9 @@ from bh8_gym.protocol import SPREAD_MOTOR
 from bh8_gym.rendering import Camera
 
 
+_KINDS = ("box", "capsule", "cylinder", "sphere")  # the privileged one-hot's order, then "mesh"
+
+
 @dataclass(frozen=True)
 class GraspRewardWeights:
     """Per-step shaping weights and the success bonus (return scale ~10 over ~300 steps)."""
@@ -113,12 +116,21 @@ class GraspTask:
         return -self.weights.safety_stop
 
     def fill_privileged(self, out: np.ndarray) -> None:
-        """object_dx/dy/dz from the wrist, object_rise, contact_f1..3 (`GRASP_PRIVILEGED_NAMES`)."""
+        """object_dx/dy/dz from the wrist, object_rise, contact_f1..3, then what the object is: a
+        one-hot of its kind (a mesh for anything not a primitive), its extents at rest (dm), mass
+        (kg) and friction (`GRASP_PRIVILEGED_NAMES`): an asymmetric critic that knows the object
+        can value a grasp chosen for it."""
         position = np.asarray(self.plant.body_position(self.scene.object_body))
         wrist, _ = self.plant.wrist_pose()
         out[:3] = position - np.asarray(wrist)
         out[3] = position[2] - self.scene.object_rest_z
         out[4:7] = self._finger_contacts()
+        spec = self.scene.episode.spec
+        out[7:12] = 0.0
+        out[7 + (_KINDS.index(spec.kind) if spec.kind in _KINDS else len(_KINDS))] = 1.0
+        out[12:15] = np.asarray(self.scene.object_extents) * 10.0
+        out[15] = spec.mass or 0.0
+        out[16] = spec.friction or 0.0
 
     def privileged_info(self) -> dict:
         position = np.asarray(self.plant.body_position(self.scene.object_body))
