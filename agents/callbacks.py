@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 
 from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.evaluate import run_episodes, summarize
+from bh8_gym.agents.evaluate import percent, run_episodes, summarize
 from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
@@ -55,7 +55,8 @@ class EvaluationCallback(BaseCallback):
             self._env = make_env(config["env_id"], self.trainer.evaluation_env_kwargs)
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
         policy = HostObservationModel(self.model) if host_observation_count(self.model) else self.model
-        results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed)
+        results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed,
+                               progress=self.trainer.progress)
         summary = summarize(results)
         row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
         append_evaluation(self.trainer.out_dir, row)
@@ -67,6 +68,8 @@ class EvaluationCallback(BaseCallback):
             self.state["best_success_rate"], self.state["best_mean_return"] = score
             self.state["best_timesteps"] = self.num_timesteps
             save_model_atomic(self.model, self.trainer.out_dir / BEST_MODEL_FILE)
+        if getattr(self.trainer, "log", None) is not None:
+            self.trainer.log(evaluation_line(row, self.state))
         if getattr(self.trainer, "on_evaluation", None) is not None:
             self.trainer.on_evaluation(row, self.state)
         return summary
@@ -75,6 +78,22 @@ class EvaluationCallback(BaseCallback):
         if self._env is not None:
             self._env.close()
             self._env = None
+
+
+def evaluation_line(row: dict, state: dict) -> str:
+    """One validation evaluation (its evaluations.csv row) as `bh8 train` prints it, with whether it
+    is the run's new best (`state` as EvaluationCallback keeps it, this evaluation counted)."""
+    line = (f"step {row['timesteps']}: validation success {percent(row['success_rate'])} (95% Wilson CI "
+            f"{percent(row['success_ci_low'], row['success_ci_high'])}, {row['episodes']} episodes), "
+            f"mean return {row['mean_return']:.2f}; ")
+    if state.get("best_timesteps") == row["timesteps"]:
+        return line + "new best"
+    return line + f"best so far {percent(state['best_success_rate'])} at step {state['best_timesteps']}"
+
+
+def console_line(text: str) -> None:
+    """Print a line on stdout without breaking a progress bar drawn on the terminal."""
+    tqdm.write(text)
 
 
 class KeepDemonstrationsCallback(BaseCallback):
@@ -135,7 +154,8 @@ class RunCheckpointCallback(BaseCallback):
 
 
 class TrainingProgressCallback(BaseCallback):
-    """A tqdm bar over the run's total env steps, starting where a resumed run left off."""
+    """A tqdm bar over the run's total env steps, starting where a resumed run left off; drawn on a
+    terminal only (disable=None), so a log file gets the evaluation lines and no bar updates."""
 
     def __init__(self, total_timesteps: int):
         super().__init__()
@@ -143,7 +163,8 @@ class TrainingProgressCallback(BaseCallback):
         self._bar = None
 
     def _on_training_start(self) -> None:
-        self._bar = tqdm(total=self.total_timesteps, initial=self.num_timesteps, unit="step", dynamic_ncols=True)
+        self._bar = tqdm(total=self.total_timesteps, initial=self.num_timesteps, unit="step", dynamic_ncols=True,
+                         desc="training", disable=None)
 
     def _on_step(self) -> bool:
         # PPO collects whole rollouts, so the run may end a little past the requested total

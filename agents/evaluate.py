@@ -50,6 +50,12 @@ DEFAULT_EVALUATION_SETS = "test,primitives-test"
 GRASP_STRAIN_RISE = 8
 
 
+def percent(*fractions: float) -> str:
+    """Fractions as the reports print them, one decimal: percent(0.425) is "42.5 %", percent(low,
+    high) "35.9-49.4 %". Every table rounds through here, so 85/200 reads the same in each."""
+    return "-".join(f"{100 * fraction:.1f}" for fraction in fractions) + " %"
+
+
 def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
     """Wilson score interval for a binomial proportion (default 95%)."""
     if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
@@ -222,13 +228,13 @@ def group_table(results: Sequence[EpisodeResult]) -> str:
     def row(object_set: str, family: str, s: dict) -> str:
         strain = "-" if s["mean_peak_strain"] is None else f"{s['mean_peak_strain']:.1f}"
         return (f"| {object_set} | {family} | {s['episodes']} | {s['successes']}/{s['episodes']} "
-                f"({s['success_rate']:.1%}) | {s['success_ci_low']:.3f}-{s['success_ci_high']:.3f} | "
+                f"({percent(s['success_rate'])}) | {percent(s['success_ci_low'], s['success_ci_high'])} | "
                 f"{s['safety_stops']} | {strain} |")
 
     for object_set, summary in summaries_by(results, "object_set").items():
         in_set = [r for r in results if r.object_set == object_set]
         families = summaries_by(in_set, "family")
-        lines.append(row(f"**{object_set}**", "all", summary))
+        lines.append(row(f"**{object_set or '(no objects)'}**", "all", summary))
         if len(families) > 1:
             lines += [row(object_set, family, families[family]) for family in sorted(families)]
     if len({r.object_set for r in results}) > 1:
@@ -251,6 +257,13 @@ def paired_comparison(ours: Sequence[bool], theirs: Sequence[bool]) -> dict[str,
     p_value = min(1.0, 2 * tail / 2 ** discordant)  # exact integers until this one division
     return {"episodes": len(ours), "only_ours": only_ours, "only_theirs": only_theirs, "both": both,
             "neither": len(ours) - discordant - both, "mcnemar_p": p_value}
+
+
+def paired_line(label: str, paired: dict[str, Any]) -> str:
+    """One line of `paired_comparison`'s counts and p-value for the console."""
+    return (f"{label} on the same {paired['episodes']} episodes: only this one succeeded {paired['only_ours']}, "
+            f"only that one {paired['only_theirs']}, both {paired['both']}, neither {paired['neither']}; "
+            f"exact McNemar p = {paired['mcnemar_p']:.3g}")
 
 
 def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str, list[dict]]:
@@ -291,8 +304,8 @@ def per_object_table(results: Sequence[EpisodeResult]) -> str:
         s = summarize(rows)
         grasp = "-" if s["mean_grasp_time"] is None else f"{s['mean_grasp_time']:.3f}"
         strain = "-" if s["mean_peak_strain"] is None else f"{s['mean_peak_strain']:.1f}"
-        return (f"| {name} | {s['episodes']} | {s['successes']}/{s['episodes']} ({s['success_rate']:.0%}) | "
-                f"{s['success_ci_low']:.2f}-{s['success_ci_high']:.2f} | {grasp} | {strain} |")
+        return (f"| {name} | {s['episodes']} | {s['successes']}/{s['episodes']} ({percent(s['success_rate'])}) | "
+                f"{percent(s['success_ci_low'], s['success_ci_high'])} | {grasp} | {strain} |")
 
     for name in sorted(groups):
         lines.append(row(name, groups[name]))
@@ -471,14 +484,20 @@ def run(args: argparse.Namespace) -> int:
     for name, part in summaries_by(results, "object_set").items():
         print(f"{name or env_id}: success rate {part['success_rate']:.3f} (95% Wilson CI {part['success_ci_low']:.3f}-"
               f"{part['success_ci_high']:.3f}) over {part['episodes']} episodes; safety stops {part['safety_stops']}")
-    print(f"mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; peak strain mean "
-          f"{summary['mean_peak_strain']} max {summary['max_peak_strain']}")
+    strain = ("n/a" if summary["mean_peak_strain"] is None
+              else f"mean {summary['mean_peak_strain']:.1f} max {summary['max_peak_strain']}")
+    print(f"mean return {summary['mean_return']:.2f}; mean grasp time {grasp}; peak strain {strain}")
     print(group_table(results))
-    print(table)
+    # The per-object rows (about 85 per object set) would bury the summary: they go to table.md only.
+    print(f"per-object table: {args.out / 'table.md'}" if args.out is not None
+          else "per-object table: pass --out DIR (written to DIR/table.md)")
     if paired is not None:
-        print(f"paired with {args.compare} on the same {paired['episodes']} episodes: only this one succeeded "
-              f"{paired['only_ours']}, only that one {paired['only_theirs']}, both {paired['both']}, neither "
-              f"{paired['neither']}; exact McNemar p = {paired['mcnemar_p']:.3g}")
+        if len(object_sets) > 1:
+            for name in object_sets:
+                episodes = [i for i, r in enumerate(results) if r.object_set == name]
+                print(paired_line(f"{name}: paired", paired_comparison([results[i].success for i in episodes],
+                                                                       [theirs[i] for i in episodes])))
+        print(paired_line(f"paired with {args.compare}", paired))
     if args.out is not None:
         (args.out / "table.md").write_text(group_table(results) + "\n\n" + table + "\n")
         (args.out / "results.json").write_text(json.dumps(

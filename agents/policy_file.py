@@ -355,9 +355,9 @@ def _stand_ins(raw: bytes, path: Path) -> dict[str, Any]:
     stand_ins: dict[str, Any] = {}
     for key, entry in pickled.items():
         if key in _SCHEDULE_KEYS:
-            from stable_baselines3.common.utils import get_schedule_fn
+            from stable_baselines3.common.utils import FloatSchedule
 
-            stand_ins[key] = get_schedule_fn(0.0)
+            stand_ins[key] = FloatSchedule(0.0)
         elif key in _DEFAULTED_KEYS:
             stand_ins[key] = _DEFAULTED_KEYS[key]
         elif key == "policy_class":
@@ -396,8 +396,11 @@ def _box_from_json(key: str, entry: dict, path: Path):
         if entry.get(":type:") != "<class 'gymnasium.spaces.box.Box'>":
             raise ValueError
         shape = tuple(int(v) for v in entry["_shape"])
+        dtype = np.dtype(entry["dtype"])
         low, high = numbers(entry["low"]).reshape(shape), numbers(entry["high"]).reshape(shape)
-        return gym.spaces.Box(low, high, shape=shape, dtype=np.dtype(entry["dtype"]))
+        if dtype.kind == "f":  # float32 bounds for a float32 space: Box warns about float64 ones
+            low, high = low.astype(dtype), high.astype(dtype)
+        return gym.spaces.Box(low, high, shape=shape, dtype=dtype)
     except (KeyError, TypeError, ValueError):
         raise PolicyFileError(_untrusted(path, f"an {key} that is not a Box bh8-gym can rebuild")) from None
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from bh8_gym.agents.baselines import LOOP_BASELINES, make_baseline
 from bh8_gym.agents.env_factory import make_env
@@ -128,14 +129,24 @@ def load_demonstrations(path) -> Demonstrations:
         return Demonstrations(data["observations"], data["actions"], data["returns"], successes, episodes)
 
 
-def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: float) -> Demonstrations:
-    """Run the scripted grasp for `settings.episodes` episodes on the training env."""
+def progress_bar(iterable, progress: bool, **kwargs):
+    """`iterable` with a tqdm bar when `progress` and stderr is a terminal (disable=None): a log
+    file gets no bar updates."""
+    return tqdm(iterable, disable=None if progress else True, leave=False, dynamic_ncols=True, **kwargs)
+
+
+def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: float,
+           progress: bool = False) -> Demonstrations:
+    """Run the scripted grasp for `settings.episodes` episodes on the training env (`progress`: a
+    bar on a terminal)."""
     env = make_env(env_id, env_kwargs)
     rng = np.random.default_rng(settings.seed)
     try:
         script = make_baseline(settings.baseline, env, **settings.baseline_kwargs)
         observations, actions, returns, successes = [], [], [], 0
-        for episode in range(settings.episodes):
+        episodes = progress_bar(range(settings.episodes), progress, desc=f"demonstrations ({settings.baseline})",
+                                unit="ep")
+        for episode in episodes:
             observation, info = env.reset(seed=settings.seed + episode)
             script.reset(env)
             rewards, done = [], False
@@ -149,6 +160,7 @@ def record(env_id: str, env_kwargs: dict, settings: PretrainSettings, gamma: flo
                 rewards.append(float(reward))
                 done = terminated or truncated
             successes += bool(info.get("is_success"))
+            episodes.set_postfix(held=successes, refresh=False)
             returns.append(discounted_returns(rewards, gamma))
     finally:
         env.close()
@@ -180,9 +192,10 @@ def value_fit_loss(policy, observations, returns):
     return torch.nn.functional.mse_loss(policy.predict_values(observations).flatten(), returns)
 
 
-def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, seed: int) -> dict[str, float]:
+def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, seed: int,
+          progress: bool = False) -> dict[str, float]:
     """Fit the policy's mean action (MSE) and its value (MSE to the discounted return); returns the
-    last epoch's losses."""
+    last epoch's losses (`progress`: a bar on a terminal)."""
     import torch
 
     policy = model.policy
@@ -194,7 +207,8 @@ def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, see
     generator = torch.Generator().manual_seed(seed)
     count = len(observations)
     losses = {}
-    for _ in range(settings.epochs):
+    epochs = progress_bar(range(settings.epochs), progress, desc="cloning", unit="epoch")
+    for _ in epochs:
         order = torch.randperm(count, generator=generator)
         actor_sum = value_sum = 0.0
         for start in range(0, count, settings.batch_size):
@@ -208,5 +222,6 @@ def clone(model, demonstrations: Demonstrations, settings: PretrainSettings, see
             actor_sum += float(actor_loss.detach()) * len(batch)
             value_sum += float(value_loss.detach()) * len(batch)
         losses = {"actor_mse": actor_sum / count, "value_mse": value_sum / count}
+        epochs.set_postfix({name: f"{value:.4g}" for name, value in losses.items()}, refresh=False)
     policy.set_training_mode(False)
     return losses

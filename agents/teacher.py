@@ -23,11 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from bh8_gym.agents.baselines import make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.pretrain import Demonstrations, clone, discounted_returns
+from bh8_gym.agents.pretrain import Demonstrations, clone, discounted_returns, progress_bar
 
 
 def choose_scripts(env, scripts: list[str], seeds, progress: bool = False) -> list[tuple[str, bool]]:
@@ -41,8 +40,7 @@ def choose_scripts(env, scripts: list[str], seeds, progress: bool = False) -> li
     seeds = list(seeds)
     held: dict[str, list[bool]] = {}
     families: list[str] = []
-    bar = tqdm(total=len(scripts) * len(seeds), desc="teacher: trying its grasps", unit="ep",
-               disable=None if progress else True)
+    bar = progress_bar(None, progress, total=len(scripts) * len(seeds), desc="teacher: trying its grasps", unit="ep")
     for name in scripts:
         script = make_script(name, env)
         held[name] = []
@@ -130,9 +128,8 @@ def distill(model, env_id: str, env_kwargs: dict, settings, seed: int, progress:
         for iteration in range(settings.dagger_iterations):
             beta = settings.dagger_beta ** iteration
             run = Rollouts([], [], [], 0, 0)
-            episodes = tqdm(zip(seeds, [c for c, _ in chosen]), total=len(seeds), unit="ep", leave=False,
-                            desc=f"DAgger {iteration + 1}/{settings.dagger_iterations} (beta {beta:.2f})",
-                            disable=None if progress else True)
+            episodes = progress_bar(zip(seeds, [c for c, _ in chosen]), progress, total=len(seeds), unit="ep",
+                                    desc=f"DAgger {iteration + 1}/{settings.dagger_iterations} (beta {beta:.2f})")
             for episode_seed, name in episodes:
                 rollout(env, student, teachers[name], episode_seed, beta, rng, float(model.gamma), run)
             for key in ("observations", "labels", "returns"):
@@ -140,7 +137,7 @@ def distill(model, env_id: str, env_kwargs: dict, settings, seed: int, progress:
             demonstrations = Demonstrations(np.asarray(data.observations, dtype=np.float32),
                                             np.asarray(data.labels, dtype=np.float32),
                                             np.asarray(data.returns, dtype=np.float32), run.successes, run.episodes)
-            losses = clone(model, demonstrations, settings, seed=seed + iteration)
+            losses = clone(model, demonstrations, settings, seed=seed + iteration, progress=progress)
             history.append({"iteration": iteration, "beta": beta, "held": run.successes, "episodes": run.episodes,
                             "steps": len(data.labels), **losses})
             report(f"DAgger {iteration + 1}/{settings.dagger_iterations}: beta {beta:.2f}, the executed grasps "

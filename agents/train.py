@@ -224,8 +224,11 @@ class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
     def __init__(self, config: dict, out_dir: Path, n_envs: int | None = None, seed: int = 0,
-                 progress: bool = True, verbose: int = 0, on_evaluation=None):
+                 progress: bool = True, verbose: int = 0, on_evaluation=None, log=None):
         self.config = config
+        #: Called with a line of text for each step of the warm start and each validation evaluation
+        #: (`bh8 train` prints them); None: silent.
+        self.log = log
         #: Called after each validation evaluation with its evaluations.csv row and the run's state
         #: (best so far); `bh8 sweep` reports them to Ray Tune.
         self.on_evaluation = on_evaluation
@@ -311,18 +314,26 @@ class Trainer:
     def _warm_start(self, model):
         """[pretrain]: clone the scripted grasp into the new model; pretrain.json says how well.
         Returns the demonstrations (also saved in the run for a resume to keep cloning them)."""
-        if self.pretrain.teacher:
+        settings, log = self.pretrain, self.log or (lambda _line: None)
+        if settings.teacher:
             from bh8_gym.agents.teacher import distill
 
-            demonstrations, summary = distill(model, self.config["env_id"], self._training_env_kwargs, self.pretrain,
-                                              seed=self.seed, progress=self.progress)
+            log(f"warm start: a teacher choosing among {', '.join(settings.teacher)} on {settings.episodes} "
+                f"training episodes, distilled in {settings.dagger_iterations} DAgger iterations ([pretrain])")
+            demonstrations, summary = distill(model, self.config["env_id"], self._training_env_kwargs, settings,
+                                              seed=self.seed, progress=self.progress, report=log)
             save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)
             write_json_atomic(self.out_dir / "pretrain.json", {**summary, "steps": int(len(demonstrations.actions))})
             return demonstrations
-        demonstrations = record(self.config["env_id"], self._training_env_kwargs, self.pretrain,
-                                gamma=float(model.gamma))
+        log(f"warm start: recording {settings.episodes} episodes of the {settings.baseline} grasp, then "
+            f"{settings.epochs} epochs of cloning ([pretrain])")
+        demonstrations = record(self.config["env_id"], self._training_env_kwargs, settings,
+                                gamma=float(model.gamma), progress=self.progress)
+        log(f"warm start: the script held {demonstrations.successes} of {demonstrations.episodes} episodes "
+            f"({len(demonstrations.actions)} steps recorded)")
         save_demonstrations(self.out_dir / DEMONSTRATIONS_FILE, demonstrations)
-        losses = clone(model, demonstrations, self.pretrain, seed=self.seed)
+        losses = clone(model, demonstrations, settings, seed=self.seed, progress=self.progress)
+        log(f"warm start: cloned; actor MSE {losses['actor_mse']:.4g}, value MSE {losses['value_mse']:.4g}")
         write_json_atomic(self.out_dir / "pretrain.json", {
             "baseline": self.pretrain.baseline, "baseline_kwargs": self.pretrain.baseline_kwargs,
             "episodes": demonstrations.episodes, "successes": demonstrations.successes,
@@ -550,6 +561,9 @@ def _check_resume_arguments(args: argparse.Namespace, run: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bh8_gym.agents.callbacks import console_line
+    from bh8_gym.agents.evaluate import percent
+
     try:
         if args.resume and (args.out / RUN_METADATA_FILE).exists():
             run_metadata = read_run_json(args.out / RUN_METADATA_FILE)
@@ -565,7 +579,7 @@ def run(args: argparse.Namespace) -> int:
                 raise TrainingError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
             seed = 0 if args.seed is None else args.seed
         trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=seed,
-                          progress=not args.no_progress, verbose=args.verbose)
+                          progress=not args.no_progress, verbose=args.verbose, log=console_line)
         state = trainer.run(args.timesteps, resume=args.resume)
     except (TrainingError, ValueError) as exc:
         print(f"bh8 train: {exc}", file=sys.stderr)
@@ -581,6 +595,6 @@ def run(args: argparse.Namespace) -> int:
               f"{int(config['eval'].get('freq', 10_000))} steps, eval.freq), so there is no best_model.zip; "
               f"the trained model is {model}")
     else:
-        print(f"trained to {state['num_timesteps']} steps; best validation success rate {state['best_success_rate']:.2f} "
+        print(f"trained to {state['num_timesteps']} steps; best validation success rate {percent(state['best_success_rate'])} "
               f"(step {state['best_timesteps']}, {args.out / BEST_MODEL_FILE}); outputs in {args.out}")
     return 0

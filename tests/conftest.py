@@ -14,8 +14,15 @@ import time
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 PROMPT = b"=> "
+
+# Hypothesis' default 200 ms deadline per example and its too_slow health check measure the machine,
+# not the code: on a loaded 2-core machine (load average 12-19) a codec round trip that passes alone
+# failed in a random-order run of the suite. Examples stay bounded by pytest-timeout.
+settings.register_profile("bh8", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("bh8")
 
 
 def read_to_prompt(port, limit: int = 100) -> bytes:

@@ -85,7 +85,19 @@ def test_summary_and_per_object_table():
     table = per_object_table(results).splitlines()
     assert table[0].startswith("| object |")
     assert [line.split("|")[1].strip() for line in table[2:]] == ["box 5.0x5.0x5.0cm", "mug", "**all**"]
-    assert "1/2 (50%)" in table[3] and "2/3 (67%)" in table[4]
+    assert "1/2 (50.0 %)" in table[3] and "2/3 (66.7 %)" in table[4]
+
+
+def test_both_tables_print_the_same_rate_for_the_same_episodes():
+    """The group table and the per-object table round a rate the same way (85/200 was 42.5 % in one
+    and 42 % in the other)."""
+    from bh8_gym.agents.evaluate import group_table, percent
+
+    results = [EpisodeResult("mug", i < 85, 1.0, 300, 2.1, None, 150, object_set="test", family="random_urdf")
+               for i in range(200)]
+    for table in (group_table(results), per_object_table(results)):
+        assert "| 85/200 (42.5 %) |" in table, table
+    assert percent(0.425) == "42.5 %" and percent(0.0, 1.0) == "0.0-100.0 %"
 
 
 def test_paired_comparison_counts_and_exact_mcnemar_reference_values():
@@ -462,7 +474,9 @@ def test_eval_cli_writes_table_and_report(tmp_path, capsys):
     out = tmp_path / "report"
     assert main(["eval", str(policy), "--episodes", "3", "--out", str(out), "--gif-episodes", "1"]) == 0
     printed = capsys.readouterr().out
-    assert "95% Wilson CI" in printed and "| object |" in printed
+    assert "95% Wilson CI" in printed and "| object set |" in printed
+    assert "| object |" not in printed  # the per-object rows go to table.md only
+    assert "| object |" in (out / "table.md").read_text() and f"per-object table: {out / 'table.md'}" in printed
     report = json.loads((out / "results.json").read_text())
     assert report["summary"]["episodes"] == 3 and len(report["episodes"]) == 3
     low, high = wilson_interval(report["summary"]["successes"], 3)
@@ -517,6 +531,48 @@ def test_eval_compare_pairs_two_reports_on_the_same_episodes(tmp_path, capsys):
     assert main(["eval", str(policy), "--episodes", "3", "--seed", "8", "--gif-episodes", "0",
                  "--compare", str(first)]) == 2
     assert "from seed 7" in capsys.readouterr().err
+
+
+def test_eval_prints_set_and_family_rows_and_pairs_each_set(tmp_path, capsys):
+    """On several object sets the console gets each set's summary, its family rows and a paired
+    line per set before the overall one; the per-object rows only table.md."""
+    from bh8_gym.cli import main
+
+    common = ["eval", "--baseline", "loop", "--objects", "primitives-test,test", "--episodes", "2",
+              "--gif-episodes", "0"]
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert main([*common, "--out", str(first)]) == 0
+    assert main([*common, "--out", str(second), "--compare", str(first)]) == 0
+    printed = capsys.readouterr().out.split("\n")
+    group_rows, object_table = (second / "table.md").read_text().split("\n\n")
+    assert all(row in printed for row in group_rows.splitlines())
+    assert "| primitives-test | " in group_rows  # the primitives' families have rows of their own
+    objects = [row for row in object_table.splitlines()[2:] if "**all**" not in row]
+    assert objects and not any(row in printed for row in objects)
+    paired = [line for line in printed if "on the same" in line]
+    assert [line.split(" on the same")[0] for line in paired] == [
+        "primitives-test: paired", "test: paired", f"paired with {first}"]
+    assert all(line.endswith("exact McNemar p = 1") for line in paired)  # the same grasp: no discordance
+
+
+def test_training_and_evaluating_a_model_warns_nothing_deprecated(tmp_path):
+    """No SB3 schedule deprecation (get_schedule_fn, constant_fn) and no Gymnasium "Box precision
+    lowered" while training with a linear schedule and evaluating the saved model from its file."""
+    import warnings
+
+    from bh8_gym.agents.train import Trainer
+    from bh8_gym.cli import main
+
+    config = _tiny_reach_config("PPO")
+    config["hyperparameters"].update(learning_rate="lin_3e-4", clip_range="lin_0.2")
+    config["eval"]["freq"] = 64
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        Trainer(config, tmp_path / "run", n_envs=1, seed=0, progress=False).run(64)
+        assert main(["eval", str(tmp_path / "run" / "best_model.zip"), "--episodes", "1", "--gif-episodes", "0",
+                     "--no-progress"]) == 0
+    messages = [str(w.message) for w in caught]
+    assert not [m for m in messages if "deprecated" in m or "precision lowered" in m], messages
 
 
 def test_training_curve_plot(tmp_path):

@@ -185,3 +185,55 @@ def test_dagger_labels_the_students_own_states_with_the_teachers_actions():
     # the teacher's labels are the float actions its scripts produce: inside [-1, 1]
     assert np.all(np.abs(demonstrations.actions) <= 1.0 + 1e-6)
     assert any("DAgger 2/2" in line for line in reports)
+
+
+def test_bh8_train_says_what_the_warm_start_does_and_prints_each_validation_evaluation(tmp_path):
+    """`bh8 train` reports the warm start (the script's episodes held, the cloning losses) and each
+    validation evaluation as it lands (step, success with its CI, mean return, new best or not).
+    Off a terminal (here: captured) it draws no progress bar, so a CI log gets lines, not bar spam."""
+    import contextlib
+    import io
+    import re
+
+    from bh8_gym.cli import main
+
+    config = tmp_path / "tiny.toml"
+    config.write_text("""algorithm = "PPO"
+env_id = "BH8Grasp-v0"
+[env_kwargs]
+object_set = "primitives-train"
+randomize = false
+[eval_env_kwargs]
+object_set = "primitives-validation"
+randomize = false
+[train]
+checkpoint_freq = 10000
+[eval]
+freq = 128
+episodes = 2
+[pretrain]
+baseline = "squeeze"
+episodes = 2
+epochs = 2
+[hyperparameters]
+n_steps = 128
+batch_size = 64
+n_epochs = 1
+[policy_kwargs]
+net_arch = [16]
+""")
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["train", "--config", str(config), "--out", str(tmp_path / "run"), "--n-envs", "1",
+                     "--timesteps", "128"])
+    assert code == 0, err.getvalue()
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "warm start: recording 2 episodes of the squeeze grasp, then 2 epochs of cloning ([pretrain])"
+    assert re.fullmatch(r"warm start: the script held [0-2] of 2 episodes \(\d+ steps recorded\)", lines[1])
+    assert re.fullmatch(r"warm start: cloned; actor MSE \S+, value MSE \S+", lines[2])
+    evaluation = (r"step {}: validation success \d+\.\d % \(95% Wilson CI \d+\.\d-\d+\.\d %, 2 episodes\), "
+                  r"mean return -?\d+\.\d\d; ")
+    assert re.fullmatch(evaluation.format(0) + "new best", lines[3]), lines[3]
+    assert re.fullmatch(evaluation.format(128) + r"(new best|best so far \d+\.\d % at step 0)", lines[4]), lines[4]
+    assert lines[5].startswith("trained to 128 steps; best validation success rate ") and len(lines) == 6
+    assert "%|" not in err.getvalue() and "\r" not in err.getvalue()  # no bar drawn into a log
