@@ -20,9 +20,8 @@ Choices where the documents are silent (SPEC.md §4, §8):
 from __future__ import annotations
 
 from bh8_gym.firmware.clock import TIME_EPS
-from bh8_gym.firmware.parser import CTRL_C
 from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
-from bh8_gym.protocol import SPREAD_MOTOR
+from bh8_gym.protocol import CTRL_C, SPREAD_MOTOR
 from bh8_gym.status import Status
 
 # Our choice (the manual only says "no motion"): movement below this many counts during TSTOP ms
