@@ -591,9 +591,10 @@ class PtyServer:
 
     def _note(self, message: str, once: bool = True) -> None:
         """One line on stderr (each message once, unless `once` is False)."""
-        if once and message in self._noted:
-            return
-        self._noted.add(message)
+        if once:
+            if message in self._noted:
+                return
+            self._noted.add(message)
         print(f"bh8 serve: {message}", file=sys.stderr, flush=True)
 
     # -- the two serving loops -------------------------------------------------------------

@@ -757,9 +757,8 @@ def test_a_fresh_open_starts_empty_whatever_the_last_client_left_unread(tmp_path
     """A real port drops what arrives while it is closed and a new open starts empty (issue 18):
     a client that sends ^C (SPEC.md §2: idle ^C gets a prompt) or a command and closes without
     reading the reply must not leave that reply for the next client, whether it closed before the
-    hand answered or after. The next client then gets exactly its own replies. (A reply that is
-    still on its way when the next client opens, the end of a long motion, reaches that client,
-    as it would through a port.)"""
+    hand answered or after. The next client then gets exactly its own replies (not even the end of
+    a motion still running when it opens: see the tests of one client per port below)."""
     link = _serve(tmp_path / "store")
     link.port.close()
     try:
@@ -1219,3 +1218,47 @@ def test_a_ctrl_c_from_the_next_client_aborts_a_closed_clients_motion(tmp_path):
             os.close(fd)
     finally:
         link.close()
+
+
+_CLIENT_ACTIONS = st.lists(st.tuples(st.integers(0, 3), st.sampled_from(["open", "write", "close"])), max_size=30)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_CLIENT_ACTIONS, st.lists(st.integers(1, 5), max_size=10))
+def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
+    """`_OpenHistory` reads a pty's inotify events (in the order of the clients' opens, writes and
+    closes; inotify merges an event with an identical one before it still unread, and the server
+    reads them in batches). Whenever one client holds the pty at the end: if no close came after
+    the last open, that client opened after every other had closed; if then nobody wrote before
+    that open, every byte in the pty is its own; and if it has written nothing, every byte is the
+    others'. The server relies on these to serve it or hang it up."""
+    from bh8_gym.virtual_serial import _OpenHistory, _OpenWatch
+
+    mask_of = {"open": _OpenWatch.IN_OPEN, "write": _OpenWatch.IN_MODIFY, "close": _OpenWatch.IN_CLOSE & 0x08}
+    open_clients, events, log = set(), [], []  # log: (client, action) that took effect
+    for client, action in actions:
+        if (action == "open") == (client in open_clients):
+            continue  # a client opens only when closed, writes and closes only when open
+        if action == "open":
+            open_clients.add(client)
+        elif action == "close":
+            open_clients.discard(client)
+        log.append((client, action))
+        if not events or events[-1] != mask_of[action]:  # inotify merges with the last unread event
+            events.append(mask_of[action])
+    history, start = _OpenHistory(), 0
+    for size in drains + [len(events)]:  # read in batches, as the server does
+        history.add(events[start:start + size])
+        start += size
+    if len(open_clients) != 1:
+        return
+    (holder,) = open_clients
+    last_open = max(i for i, (client, action) in enumerate(log) if client == holder and action == "open")
+    if history.closed_since_open:
+        return
+    assert all(action != "open" or client == holder or i < last_open for i, (client, action) in enumerate(log))
+    assert all(action != "close" or i < last_open for i, (client, action) in enumerate(log))
+    if not history.written_before_open:
+        assert not any(action == "write" and client != holder for client, action in log)
+    if not history.written_since_open:
+        assert not any(action == "write" and client == holder for client, action in log)
