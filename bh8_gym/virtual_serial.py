@@ -99,7 +99,7 @@ COUNTER_SAVE_INTERVAL_S = 10.0
 # with nobody reading overruns; a reopening client flushes its input anyway (pyserial does).
 OUTPUT_BACKLOG_LIMIT = 1 << 20
 _READ_CHUNK = 4096
-# More than a pty holds in both directions' buffers (the kernel's 64 KiB flip buffer and 4 KiB line
+# More than a pty holds for its leader to read (the kernel's 64 KiB flip buffer and 4 KiB line
 # discipline): reading this much empties it.
 _PTY_BUFFER_BYTES = 1 << 17
 # Seconds between attempts to put a new pty behind the device after one failed (out of ptys).
@@ -296,8 +296,10 @@ class _Pty:
 
 def _descriptors_open_on(device: str) -> int:
     """How many file descriptors of the processes this user may look into (all, for root) have
-    `device` open, from /proc (0 where there is none)."""
+    `device` open, from /proc (0 where there is none). A name that matches is checked to be the
+    same node: a process in another container may have its own /dev/pts with the same numbers."""
     try:
+        node = os.stat(device)
         pids = [entry for entry in os.listdir("/proc") if entry.isdigit()]
     except OSError:
         return 0
@@ -309,8 +311,10 @@ def _descriptors_open_on(device: str) -> int:
         except OSError:
             continue  # another user's process, or gone
         for descriptor in descriptors:
+            path = f"{directory}/{descriptor}"
             try:
-                count += os.readlink(f"{directory}/{descriptor}") == device
+                if os.readlink(path) == device and os.path.samestat(os.stat(path), node):
+                    count += 1
             except OSError:
                 continue
     return count
@@ -325,7 +329,7 @@ _DESCRIPTOR_COUNT_PAUSE_S = 0.002
 
 def _holders(pty: _Pty) -> int:
     """The number of descriptors a held pty is open on (at least 1)."""
-    for attempt in range(_DESCRIPTOR_COUNT_TRIES):
+    for _ in range(_DESCRIPTOR_COUNT_TRIES):
         count = _descriptors_open_on(pty.device)
         if count:
             return count
@@ -530,11 +534,16 @@ class PtyServer:
     def _renew_fresh_pty(self) -> None:
         """Point the device's symlink at a new pty (atomically: rename in the private directory),
         so the next open starts empty whatever the last client leaves unread. On failure (no pty
-        left, no room) the device keeps its locked pty, opens fail with EIO, and `_wait` retries."""
+        or inotify instance left, no room) the device still leads to the last pty (mode 000: an
+        open fails with EACCES) and `_wait` retries."""
         try:
             fresh = _Pty()
         except OSError as error:
             self._note(f"cannot make a new pty for the next client ({error}); retrying", once=False)
+            return
+        if not fresh.watched:
+            fresh.close()
+            self._note("cannot watch a new pty for the next client (no inotify instance left); retrying", once=False)
             return
         try:
             temporary = os.path.join(self._link_dir, f".{_DEVICE_NAME}.new")
