@@ -1055,6 +1055,21 @@ def test_a_client_that_opens_after_another_closed_unseen_never_gets_its_replies(
             os.close(late)
         assert data == b"" and hung_up
         _a_fresh_session_answers(link.device)
+        for _ in range(3):  # the same with the server running: its own reply, or refused unanswered
+            for _ in range(300):
+                fd = _raw_open(link.device)
+                os.write(fd, b"1FGET P\r")
+                os.close(fd)
+            late = _raw_open(link.device)
+            try:
+                os.write(late, b"2FGET DP\r")
+                data, hung_up = _read_until_hangup(late, 5.0)
+            except OSError:
+                data, hung_up = b"", True
+            finally:
+                os.close(late)
+            assert data == (b"" if hung_up else b"2FGET DP\n\r8500\n\r=> "), (data, hung_up)
+        _a_fresh_session_answers(link.device)
     finally:
         link.close()
 
