@@ -23,6 +23,7 @@ BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit (§9.1)
 REALTIME_PROCESSING_S = 1.0e-3
 PROMPT = b"=> "  # ends every supervisory reply (SPEC.md §2)
 LINE_END = b"\n\r"  # the firmware ends its lines LF CR
+CTRL_C = 0x03  # ^C: aborts a motion (§5.5 case 4), leaves LOOP; a data byte inside a RealTime block (SPEC.md §2)
 
 
 def seconds_per_byte(baud: int) -> float:

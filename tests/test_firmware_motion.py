@@ -77,6 +77,58 @@ def test_hi_sets_the_origin_iof_from_the_open_stop(fw):
     assert values(fw, "GFGET P") == pytest.approx([-50, -50, -50], abs=25)
 
 
+def test_hi_after_reset_homes_a_closed_spread(fw):
+    """Issue 31 (Barrett's InitSoftware sends RESET): after RESET, HI, SC, RESET, HI the spread is at
+    home at its open stop (§5.2.1 HI: "After an HI, all motors are in their home position; at 0
+    encoder counts"), SC closes it over its whole range (about 3150 counts, §5.3.4 MPE note) and
+    SM 1575 gets there within MPE without a status (§5.5 case 3). The second HI used to take the
+    spread, still gathering speed from the closed end, for stalled after TSTOP and put the zero
+    there (SC then moved 21 counts and SM 1575 answered ERR 16)."""
+    for line in ("RESET", "HI", "SC", "RESET", "HI"):
+        assert fw.transact(line.encode() + b"\r").endswith(b"\n\r=> ") and b"ERR" not in fw.read()
+    assert values(fw, "SFGET P") == pytest.approx([0], abs=50)
+    assert reply_lines(fw, "SC") == []
+    assert values(fw, "SFGET P")[0] > 3000
+    assert reply_lines(fw, "SM 1575") == []
+    assert values(fw, "SFGET P") == pytest.approx([1575], abs=50) and values(fw, "SFGET S") == [0]
+
+
+def test_hi_with_libgrippers_spread_gains_still_homes_at_the_open_stop(fw):
+    """Issue 31: libgripper leaves SFSET FPG 5 FIP 1 FDZ 100; the spread then opens at about half
+    the default duty, slowly, and HI must still set the zero at the open stop (§5.2.1 HI), never at
+    the closed end: SO afterwards reads about 0 (it read -3144: the zero was at the closed end)."""
+    assert reply_lines(fw, "SC") == []
+    assert reply_lines(fw, "SFSET FPG 5 FIP 1 FDZ 100") == []
+    assert reply_lines(fw, "HI") == []
+    assert values(fw, "SFGET P") == pytest.approx([0], abs=50) and values(fw, "SFGET S") == [0]
+    assert reply_lines(fw, "SO") == []
+    assert values(fw, "SFGET P") == pytest.approx([0], abs=50)
+    assert reply_lines(fw, "SC") == []
+    assert values(fw, "SFGET P")[0] > 3000
+
+
+def test_hi_that_cannot_open_a_motor_reports_err_16_and_sets_no_zero(fw):
+    """HI must home every motor or say it could not (SPEC.md §4, our choice where the manual is
+    silent): with a drive too weak to move the closed spread (IVEL 16 at FPG 1: 1 % duty against
+    its friction) the seek stalls at the closed end; HI answers ERR 16 (Table 3 "Couldn't reach
+    position", §5.5), S reads 16 and the origin stays where it was (P still reads closed). After a
+    RESET the motor stays uninitialised, so a move answers ERR 4 (Table 3 "Motor not initialized")."""
+    assert reply_lines(fw, "SC") == []
+    closed = values(fw, "SFGET P")[0]
+    assert reply_lines(fw, "SFSET IVEL 16 FPG 1") == []
+    assert fw.transact(b"SHI\r") == b"SHI\n\rERR 16\n\r=> "
+    assert values(fw, "SFGET S") == [16]
+    assert values(fw, "SFGET P") == pytest.approx([closed], abs=50)
+    assert reply_lines(fw, "RESET")[0] == "BarrettHand Firmware"
+    assert reply_lines(fw, "SFSET IVEL 16 FPG 1") == []
+    assert fw.transact(b"HI\r") == b"HI\n\rERR 16\n\r=> "
+    assert values(fw, "FGET S") == [0, 0, 0, 16]
+    assert fw.transact(b"SM 1575\r") == b"SM 1575\n\rERR 4\n\r=> "
+    assert reply_lines(fw, "SFSET IVEL 150 FPG 10") == []
+    assert reply_lines(fw, "SHI") == []
+    assert values(fw, "SFGET P") == pytest.approx([0], abs=50) and values(fw, "SFGET S") == [0]
+
+
 def test_finger_close_and_open_take_about_one_second(fw):
     """App. A: finger fully open to fully closed about 1.0 s at the defaults (±30%)."""
     lines, seconds = timed(fw, "GC")

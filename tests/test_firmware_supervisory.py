@@ -283,6 +283,50 @@ def test_over_long_line_is_an_error_not_a_crash(link):
     assert link.lines("1FGET DP") == ["8500"]
 
 
+def test_fsave_and_psave_on_a_full_disk_answer_as_the_hand_and_warn(tmp_path, monkeypatch):
+    """SPEC.md §3 (our choice): a save the host's disk refuses (ENOSPC) is not the hand's error.
+    Table 3 has no status for a failed save (a worn EEPROM, §5.2.2 FSAVE / §5.2.3 PSAVE notes, is
+    not reported either), so FSAVE and PSAVE answer the prompt as on the hand, and the failure is
+    a StoreWarning for the host (`bh8 serve` prints it on stderr). Nothing saved before is lost
+    (the file is replaced atomically, no temporary left); the values live in memory (FLOAD, PLOAD
+    and RESET give them back) and reach the disk with the next save that succeeds."""
+    import errno
+    import warnings
+
+    import bh8_gym.nvstore as nvstore
+
+    store = tmp_path / "store"
+    firmware = Firmware(store_dir=store, seed=0)
+    try:
+        assert firmware.transact(b"PSAVE\r") == b"PSAVE\n\r=> "
+        before = (store / nvstore.STORE_FILENAME).read_bytes()
+
+        def disk_full(fd):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(nvstore.os, "fsync", disk_full)
+        with pytest.warns(nvstore.StoreWarning, match="No space left on device"):
+            assert firmware.transact(b"1FSET DP 4321\r1FSAVE\r") == b"1FSET DP 4321\n\r=> 1FSAVE\n\r=> "
+        with pytest.warns(nvstore.StoreWarning, match="No space left on device"):
+            assert firmware.transact(b"PSET OTEMP 111\rPSAVE\r") == b"PSET OTEMP 111\n\r=> PSAVE\n\r=> "
+        assert (store / nvstore.STORE_FILENAME).read_bytes() == before
+        assert sorted(path.name for path in store.iterdir() if not path.name.startswith(".")) == [nvstore.STORE_FILENAME]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", nvstore.StoreWarning)
+            assert firmware.transact(b"1FSET DP 1\r1FLOAD\r1FGET DP\r").endswith(b"1FGET DP\n\r4321\n\r=> ")
+            assert firmware.transact(b"RESET\r").endswith(PROMPT)
+        assert firmware.transact(b"PGET OTEMP\r") == b"PGET OTEMP\n\r111\n\r=> "
+        monkeypatch.undo()
+        assert firmware.transact(b"PSAVE\r") == b"PSAVE\n\r=> "
+    finally:
+        firmware.shutdown()
+    again = Firmware(store_dir=store, seed=0)
+    try:
+        assert again.transact(b"1FGET DP\rPGET OTEMP\r") == b"1FGET DP\n\r4321\n\r=> PGET OTEMP\n\r111\n\r=> "
+    finally:
+        again.shutdown()
+
+
 def test_store_persists_across_firmware_instances(tmp_path):
     """§5.2.2-§5.2.3, §5.3.2, §5.4.2: saved sets, OD, PTEMP, UPSECS and SN survive a restart."""
     first = Firmware(store_dir=tmp_path, seed=5)

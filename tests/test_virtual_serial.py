@@ -8,6 +8,8 @@ no CPU), SPEC.md §2 (framing, ^C → ERR 16384), §5 (RealTime blocks are count
 """
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import select
 import shutil
@@ -50,15 +52,18 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _check_link_serves_then_goes(link: PtyLink, link_path: Path) -> None:
-    """--link points at a pty of the server (each open of the link a fresh one, Contract 3), which
-    answers as the device does; a clean exit removes the link."""
+    """--link is a symlink to the device, so it leads to a pty of the server (each open a fresh
+    one, Contract 3), which answers as the device does; a clean exit removes the link."""
     try:
+        link.port.close()  # the port is exclusive: one client at a time
         for _ in range(2):
-            target = os.readlink(link_path)
+            assert os.readlink(link_path) == link.device
+            target = os.path.realpath(link_path)
             assert target.startswith("/dev/pts/") and stat.S_ISCHR(os.stat(target).st_mode)
             with serial.Serial(str(link_path), 9600, timeout=0.05) as port:
                 port.write(b"\r")
                 assert read_to_prompt(port) == b"\n\r=> "
+        link.port = serial.Serial(link.device, 9600, timeout=0.05)
         link.write(b"\r")
         link.read_until(PROMPT, timeout=10)
     finally:
@@ -80,6 +85,9 @@ def test_device_first_line_owner_only_and_raw(tmp_path):
 
     link = _serve(tmp_path / "store")
     try:
+        link.write(b"\r")
+        assert link.read_until(PROMPT, timeout=10) == b"\n\r=> "
+        link.port.close()  # the port is exclusive: the probe below is the next client
         info = os.stat(link.device)
         assert stat.S_ISCHR(info.st_mode)
         assert stat.S_IMODE(info.st_mode) == 0o600
@@ -89,44 +97,85 @@ def test_device_first_line_owner_only_and_raw(tmp_path):
         assert not iflag & (termios.ICRNL | termios.IXON | termios.INLCR | termios.IGNCR)
         assert not oflag & termios.OPOST
         assert not lflag & (termios.ECHO | termios.ICANON | termios.ISIG)
-        link.write(b"\r")
-        assert link.read_until(PROMPT, timeout=10) == b"\n\r=> "
     finally:
         link.close()
 
 
 def test_link_symlink_created_and_removed(tmp_path):
-    """--link PATH: a symlink to the device while serving, removed on exit; a dangling link left by
-    a killed server is replaced; an existing file is refused with a clear error."""
+    """--link PATH: a symlink to the device while serving, removed on exit. Anything already at PATH
+    that a killed server did not leave there (a file, a dangling symlink of someone else's) is
+    refused with a clear error and left as it was (issue 32: a dangling symlink used to be deleted)."""
     link_path = tmp_path / "ttyUSB0"
-    os.symlink("/nonexistent/pts/99", link_path)
     _check_link_serves_then_goes(_serve(tmp_path / "store", "--link", str(link_path)), link_path)
 
-    link_path.write_text("not a device")
-    process = subprocess.run(
-        [sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(tmp_path / "store"), "--link", str(link_path)],
-        capture_output=True, text=True, timeout=60,
-    )
-    assert process.returncode == 1
-    assert process.stdout == ""
-    assert "already exists" in process.stderr and str(link_path) in process.stderr
-    assert link_path.read_text() == "not a device"
+    for make, check in ((lambda: link_path.write_text("not a device"), lambda: link_path.read_text() == "not a device"),
+                        (lambda: os.symlink("/nonexistent/pts/99", link_path),
+                         lambda: os.readlink(link_path) == "/nonexistent/pts/99")):
+        make()
+        process = subprocess.run(
+            [sys.executable, "-m", "bh8_gym.cli", "serve", "--state", str(tmp_path / "store"), "--link", str(link_path)],
+            capture_output=True, text=True, timeout=60,
+        )
+        assert process.returncode == 1
+        assert process.stdout == ""
+        assert "already exists" in process.stderr and str(link_path) in process.stderr
+        assert check()
+        link_path.unlink()
 
 
 def test_link_left_by_a_killed_server_is_taken_over(tmp_path):
-    """A server killed with SIGKILL leaves its --link behind; the kernel hands its freed pty numbers
-    to the next server, so the stale link then points at one of the new server's own ptys. A
-    restart with the same --link must take it over, not refuse it as 'already exists'. The killed
-    server's own device symlink (and its private directory) is removed by the next server."""
+    """A server killed with SIGKILL leaves its --link behind. A restart with the same --link must
+    take it over, not refuse it as 'already exists', whatever became of the killed server's pty
+    numbers: here other programs hold them meanwhile (issue 31: the server recognised its
+    predecessor's link by a pty number, which on a busy machine another program may have taken
+    by then; the link now leads through the server's private directory, which names its pid). The
+    killed server's own device symlink (and its private directory) is removed by the next server."""
     link_path = tmp_path / "ttyUSB0"
     first = _serve(tmp_path / "store1", "--link", str(link_path))
     first.port.close()
     first.process.kill()
     first.process.wait(timeout=20)
     assert os.path.islink(link_path) and os.path.islink(first.device)
-    second = _serve(tmp_path / "store2", "--link", str(link_path))
+    held = [os.openpty() for _ in range(8)]  # other programs take the freed pty numbers
+    try:
+        second = _serve(tmp_path / "store2", "--link", str(link_path))
+    finally:
+        for fds in held:
+            for fd in fds:
+                os.close(fd)
     assert not os.path.lexists(os.path.dirname(first.device))
     _check_link_serves_then_goes(second, link_path)
+
+
+def test_link_touches_only_what_the_server_made(tmp_path):
+    """Issue 32: the server touches only the symlink it made. --link is made once and never moved
+    (the device's own symlink, in the server's private directory, is what moves from pty to pty),
+    so a file that replaces it after start stays, even through the opens that used to re-point
+    the link, and is not deleted at exit; a file or directory named .NAME.<pid> beside it (the
+    re-point's temporary name, which was deleted or made the link fail with ENOENT) is left alone."""
+    link_path = tmp_path / "ttyUSB0"
+    link = _serve(tmp_path / "store", "--link", str(link_path))
+    link.port.close()
+    beside_file = tmp_path / f".ttyUSB0.{link.process.pid}"
+    beside_file.write_text("mine")
+    try:
+        for _ in range(3):
+            _a_fresh_session_answers(str(link_path))
+        beside_file.unlink()
+        beside_file.mkdir()  # a re-point through this name would fail
+        for _ in range(3):
+            _a_fresh_session_answers(str(link_path))
+        beside_file.rmdir()
+        beside_file.write_text("mine")
+        link_path.unlink()
+        link_path.write_text("a file of someone else's")
+        for _ in range(3):
+            _a_fresh_session_answers(link.device)
+        assert link_path.read_text() == "a file of someone else's"
+    finally:
+        assert _stop(link) == 0
+    assert link_path.read_text() == "a file of someone else's"
+    assert beside_file.read_text() == "mine"
 
 
 def test_close_and_reopen_keeps_state(tmp_path):
@@ -697,7 +746,10 @@ def _raw_read_until(fd: int, terminator: bytes, timeout: float = 10.0) -> bytes:
         ready, _, _ = select.select([fd], [], [], max(left, 0.0))
         if not ready:
             raise TimeoutError(f"no {terminator!r} within {timeout}s; got {bytes(data)!r}")
-        data += os.read(fd, 1)
+        byte = os.read(fd, 1)
+        if not byte:
+            raise ConnectionError(f"hung up before {terminator!r}; got {bytes(data)!r}")
+        data += byte
     return bytes(data)
 
 
@@ -705,9 +757,8 @@ def test_a_fresh_open_starts_empty_whatever_the_last_client_left_unread(tmp_path
     """A real port drops what arrives while it is closed and a new open starts empty (issue 18):
     a client that sends ^C (SPEC.md §2: idle ^C gets a prompt) or a command and closes without
     reading the reply must not leave that reply for the next client, whether it closed before the
-    hand answered or after. The next client then gets exactly its own replies. (A reply that is
-    still on its way when the next client opens, the end of a long motion, reaches that client,
-    as it would through a port.)"""
+    hand answered or after. The next client then gets exactly its own replies (not even the end of
+    a motion still running when it opens: see the tests of one client per port below)."""
     link = _serve(tmp_path / "store")
     link.port.close()
     try:
@@ -761,7 +812,7 @@ def test_reopening_the_port_discards_the_reply_left_unread_as_a_baud_change_does
 
 
 def test_each_open_of_the_link_is_a_fresh_pty_on_the_same_hand(tmp_path):
-    """Contract 3 / --link: the link moves to a new pty whenever a client opens it, so nothing the
+    """Contract 3 / --link: the link leads to a new pty whenever a client opens it, so nothing the
     last client left unread reaches the next one however fast it reopens; the hand is the same
     (its unsaved state carries over), and a pty whose client closed is released."""
     device = tmp_path / "ttyUSB0"
@@ -769,12 +820,12 @@ def test_each_open_of_the_link_is_a_fresh_pty_on_the_same_hand(tmp_path):
     link.port.close()
     try:
         for value in (4321, 1234, 2222, 3333):
-            opened = os.readlink(device)
+            opened = os.path.realpath(device)
             fd = _raw_open(str(device))
             try:
                 os.write(fd, f"1FSET DP {value}\r".encode())
                 assert _raw_read_until(fd, PROMPT) == f"1FSET DP {value}\n\r=> ".encode()
-                assert os.readlink(device) != opened  # moved on while this client holds `opened`
+                assert os.path.realpath(device) != opened  # moved on while this client holds `opened`
                 os.write(fd, b"\x03")  # a ^C at disconnect whose prompt this client never reads
                 time.sleep(0.2)  # the prompt is in the pty, unread (one still in flight could reach a reopen, as on a port)
             finally:
@@ -788,18 +839,19 @@ def test_each_open_of_the_link_is_a_fresh_pty_on_the_same_hand(tmp_path):
         time.sleep(0.3)
         held = [fd for fd in os.listdir(f"/proc/{link.process.pid}/fd")
                 if os.readlink(f"/proc/{link.process.pid}/fd/{fd}") in ("/dev/ptmx", "/dev/pts/ptmx")]
-        assert len(held) <= 2  # the fresh pty behind the links and at most one closing
+        assert len(held) <= 2  # the fresh pty behind the device and at most one closing
         link.port = serial.Serial(link.device, 9600, timeout=0.05)
         assert link.lines("1FGET DP") == ["3333"]
     finally:
         link.close()
 
 
-def test_two_clients_open_at_once_both_keep_their_output(tmp_path):
-    """Output is dropped only while no client has the device open: a second opener (a terminal
-    watching, a probe) that closes again does not take the first client's replies away."""
+def test_a_second_opener_does_not_take_the_clients_output(tmp_path):
+    """Output is the session's: a second opener (a terminal watching, a probe) that closes again is
+    refused (the port is exclusive) and does not take the first client's replies away."""
     link = _serve(tmp_path / "store")
     try:
+        assert link.lines("1FGET DP") == ["8500"]
         probe = _raw_open(link.device)
         os.close(probe)
         assert link.lines("1FGET DP") == ["8500"]
@@ -920,3 +972,308 @@ def test_a_client_killed_mid_block_leaves_the_hand_waiting_and_repeated_ctrl_c_r
             assert hand.get("DP", "2") == {"DP": [8500]}
     finally:
         link.close()
+
+
+# -- one client per port (issue 32 item 8) ----------------------------------------------------
+
+
+@contextlib.contextmanager
+def _server_stopped(link: PtyLink):
+    """Hold the server (SIGSTOP) so that the clients' opens, writes and closes all happen before it
+    can look at them: the widest form of the race between a client and the server."""
+    link.process.send_signal(signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        link.process.send_signal(signal.SIGCONT)
+
+
+def _read_until_hangup(fd: int, seconds: float) -> tuple[bytes, bool]:
+    """What arrives on `fd` within `seconds`, and whether the port was hung up (EOF or EIO)."""
+    deadline = time.monotonic() + seconds
+    data = bytearray()
+    while (left := deadline - time.monotonic()) > 0:
+        if not select.select([fd], [], [], left)[0]:
+            continue
+        try:
+            chunk = os.read(fd, 4096)
+        except OSError:
+            return bytes(data), True
+        if not chunk:
+            return bytes(data), True
+        data += chunk
+    return bytes(data), False
+
+
+def _a_fresh_session_answers(device: str, line: bytes = b"2FGET DP", reply: bytes = b"8500") -> None:
+    """A new client gets exactly its own reply, nothing before and nothing after."""
+    fd = _raw_open(device)
+    try:
+        os.write(fd, line + b"\r")
+        assert _raw_read_until(fd, PROMPT, timeout=60) == line + b"\n\r" + reply + b"\n\r=> "
+        assert _raw_read(fd, 0.3) == b""
+    finally:
+        os.close(fd)
+
+
+def test_input_of_a_client_that_closed_before_the_server_looked_reaches_the_hand_not_the_next_client(tmp_path):
+    """Contract 3, issue 32: a client that opens, writes and closes before the server has noticed
+    it (here the server is stopped meanwhile) is a client of a closed port: its bytes reach the
+    hand (they were sent), its replies go nowhere, and the next client gets only its own."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        with _server_stopped(link):
+            for value in (1111, 2222, 4321):
+                fd = _raw_open(link.device)
+                os.write(fd, f"1FSET DP {value}\r1FGET DP\r".encode())
+                os.close(fd)
+        time.sleep(0.5)
+        _a_fresh_session_answers(link.device, b"1FGET DP", b"4321")
+    finally:
+        link.close()
+
+
+def test_a_client_that_opens_after_another_closed_unseen_never_gets_its_replies(tmp_path):
+    """Issue 32: after a burst of open/write/close cycles that the server has not yet looked at
+    (it is stopped), a new client opens the same pty. It must not receive the burst's replies:
+    the server refuses a pty that was opened again after a close (hangs it up before answering,
+    nothing is read), and the client's next open gets a session of its own."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        with _server_stopped(link):
+            for _ in range(200):
+                fd = _raw_open(link.device)
+                os.write(fd, b"1FGET P\r")
+                os.close(fd)
+            late = _raw_open(link.device)
+            os.write(late, b"2FGET DP\r")
+        try:
+            data, hung_up = _read_until_hangup(late, 5.0)
+        finally:
+            os.close(late)
+        assert data == b"" and hung_up
+        _a_fresh_session_answers(link.device)
+        for _ in range(3):  # the same with the server running: its own reply, or refused unanswered
+            for _ in range(300):
+                fd = _raw_open(link.device)
+                os.write(fd, b"1FGET P\r")
+                os.close(fd)
+            late = _raw_open(link.device)
+            try:
+                os.write(late, b"2FGET DP\r")
+                data, hung_up = _read_until_hangup(late, 5.0)
+            except OSError:
+                data, hung_up = b"", True
+            finally:
+                os.close(late)
+            assert data == (b"" if hung_up else b"2FGET DP\n\r8500\n\r=> "), (data, hung_up)
+        _a_fresh_session_answers(link.device)
+    finally:
+        link.close()
+
+
+def test_two_clients_opening_at_once_never_see_each_others_replies(tmp_path):
+    """Issue 32 / docs/hardware.md: the port is exclusive. Two clients that open the device before
+    the server has moved it on share one pty; the server hangs that pty up before answering either
+    (neither can tell its bytes from the other's), so neither reads a byte meant for the other. A
+    client that opens it afterwards gets a session of its own."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        with _server_stopped(link):
+            first, second = _raw_open(link.device), _raw_open(link.device)
+            os.write(first, b"1FGET DP\r")
+            os.write(second, b"2FGET DS\r")
+        try:
+            assert _read_until_hangup(first, 5.0) == (b"", True)
+            assert _read_until_hangup(second, 1.0) == (b"", True)
+        finally:
+            os.close(first)
+            os.close(second)
+        _a_fresh_session_answers(link.device)
+    finally:
+        link.close()
+
+
+def test_two_threads_opening_at_once_get_their_own_replies_or_a_hangup(tmp_path):
+    """The same race without stopping the server: two threads open the device together, repeatedly.
+    Each gets its own reply or a hangup (at most one of them is served at a time), never the
+    other's bytes."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    results = {}
+
+    def client(name: bytes, start: threading.Barrier) -> None:
+        start.wait()
+        results[name] = (b"", True)  # unless it gets further: refused at the open (the pty was locked)
+        try:
+            fd = _raw_open(link.device)
+        except OSError:
+            return
+        try:
+            os.write(fd, b"1FGET " + name + b"\r")
+            results[name] = _read_until_hangup(fd, 1.0)
+        except OSError:  # hung up before the write
+            pass
+        finally:
+            os.close(fd)
+
+    try:
+        for _ in range(10):
+            start = threading.Barrier(2)
+            threads = [threading.Thread(target=client, args=(name, start)) for name in (b"DP", b"DS")]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(timeout=30)
+            for name, value in ((b"DP", b"8500"), (b"DS", b"1700")):
+                data, hung_up = results[name]
+                assert data in (b"", b"1FGET " + name + b"\n\r" + value + b"\n\r=> "), (name, data, hung_up)
+        _a_fresh_session_answers(link.device)
+    finally:
+        link.close()
+
+
+def test_a_second_client_is_refused_while_the_port_is_in_use_and_its_bytes_go_nowhere(tmp_path):
+    """A real serial port is one line: while a client has the device open, another open gets a pty
+    that the server hangs up as soon as it sees it (docs/hardware.md), whatever it wrote never
+    reaches the hand, and the first client's session goes on undisturbed."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert link.lines("1FGET DP") == ["8500"]
+        intruder = _raw_open(link.device)
+        try:
+            os.write(intruder, b"1FSET DP 1234\r")
+            assert _read_until_hangup(intruder, 5.0) == (b"", True)
+        finally:
+            os.close(intruder)
+        with _server_stopped(link):  # one that the server notices only after it wrote
+            intruder = _raw_open(link.device)
+            os.write(intruder, b"1FSET DP 4321\r")
+        try:
+            assert _read_until_hangup(intruder, 5.0) == (b"", True)
+        finally:
+            os.close(intruder)
+        assert link.lines("1FGET DP") == ["8500"]
+    finally:
+        link.close()
+
+
+def test_a_pty_in_use_cannot_be_joined_by_its_own_name(tmp_path):
+    """The device is a symlink to the pty in use; once the server has seen that pty's client, the
+    pty's own /dev/pts node is mode 000, so another user process's open fails (EACCES). Root's open
+    passes the permission check; the server then sees a second client in the pty and hangs it up,
+    so neither reads the other's replies."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert link.lines("1FGET DP") == ["8500"]
+        in_use = os.ttyname(link.port.fileno())
+        assert stat.S_IMODE(os.stat(in_use).st_mode) == 0
+        if os.geteuid() != 0:
+            with pytest.raises(PermissionError):
+                os.open(in_use, os.O_RDWR | os.O_NOCTTY)
+            assert link.lines("1FGET DP") == ["8500"]
+            return
+        intruder = _raw_open(in_use)
+        try:
+            os.write(intruder, b"1FSET DP 1234\r")
+            assert _read_until_hangup(intruder, 5.0) == (b"", True)
+        finally:
+            os.close(intruder)
+        with pytest.raises(serial.SerialException):
+            link.lines("1FGET DP")
+        link.port.close()
+        _a_fresh_session_answers(link.device, b"1FGET DP", b"8500")
+    finally:
+        link.close()
+
+
+def test_the_reply_to_a_closed_clients_motion_does_not_reach_the_next_client(tmp_path):
+    """A client sends a motion and closes while it runs; the next client's command waits for the
+    hand to finish it (the hand would drop it meanwhile) and gets its own reply, not the end of
+    the other client's motion. SHI with TSTOP 12000 stalls 12 simulated s at the open stop
+    (§5.5 case 1), so the next client writes while it runs."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert link.lines("SFSET TSTOP 12000") == []
+        link.write(b"SHI\r")
+        assert link.read_until(b"SHI", timeout=10) == b"SHI"
+        link.port.close()
+        fd = _raw_open(link.device)
+        try:
+            os.write(fd, b"2FGET DP\r")
+            assert _raw_read_until(fd, PROMPT, timeout=120) == b"2FGET DP\n\r8500\n\r=> "
+            os.write(fd, b"SFGET TSTOP\r")
+            assert _raw_read_until(fd, PROMPT) == b"SFGET TSTOP\n\r12000\n\r=> "
+        finally:
+            os.close(fd)
+    finally:
+        link.close()
+
+
+def test_a_ctrl_c_from_the_next_client_aborts_a_closed_clients_motion(tmp_path):
+    """The next client's bytes wait while the hand finishes a closed client's command, but a ^C does
+    not: it aborts the motion (§5.5 case 4, a motion that may never end) and its reply is the new
+    client's."""
+    link = _serve(tmp_path / "store")
+    try:
+        assert link.lines("SFSET TSTOP 65535") == []
+        link.write(b"SHI\r")
+        assert link.read_until(b"SHI", timeout=10) == b"SHI"
+        link.port.close()
+        fd = _raw_open(link.device)
+        try:
+            os.write(fd, b"\x03")
+            assert _raw_read_until(fd, PROMPT, timeout=30) == b"\n\rERR 16384\n\r=> "
+            os.write(fd, b"2FGET DP\r")
+            assert _raw_read_until(fd, PROMPT) == b"2FGET DP\n\r8500\n\r=> "
+        finally:
+            os.close(fd)
+    finally:
+        link.close()
+
+
+_CLIENT_ACTIONS = st.lists(st.tuples(st.integers(0, 3), st.sampled_from(["open", "write", "close"])), max_size=30)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_CLIENT_ACTIONS, st.lists(st.integers(1, 5), max_size=10))
+def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
+    """`_OpenHistory` reads a pty's inotify events (in the order of the clients' opens, writes and
+    closes; inotify merges an event with an identical one before it still unread, and the server
+    reads them in batches). Whenever one client holds the pty at the end: if no close came after
+    the last open, that client opened after every other had closed; if then nobody wrote before
+    that open, every byte in the pty is its own; and if it has written nothing, every byte is the
+    others'. The server relies on these to serve it or hang it up."""
+    from bh8_gym.virtual_serial import _OpenHistory, _OpenWatch
+
+    mask_of = {"open": _OpenWatch.IN_OPEN, "write": _OpenWatch.IN_MODIFY, "close": _OpenWatch.IN_CLOSE & 0x08}
+    open_clients, events, log = set(), [], []  # log: (client, action) that took effect
+    for client, action in actions:
+        if (action == "open") == (client in open_clients):
+            continue  # a client opens only when closed, writes and closes only when open
+        if action == "open":
+            open_clients.add(client)
+        elif action == "close":
+            open_clients.discard(client)
+        log.append((client, action))
+        if not events or events[-1] != mask_of[action]:  # inotify merges with the last unread event
+            events.append(mask_of[action])
+    history, start = _OpenHistory(), 0
+    for size in drains + [len(events)]:  # read in batches, as the server does
+        history.add(events[start:start + size])
+        start += size
+    if len(open_clients) != 1:
+        return
+    (holder,) = open_clients
+    last_open = max(i for i, (client, action) in enumerate(log) if client == holder and action == "open")
+    if history.closed_since_open:
+        return
+    assert all(action != "open" or client == holder or i < last_open for i, (client, action) in enumerate(log))
+    assert all(action != "close" or i < last_open for i, (client, action) in enumerate(log))
+    if not history.written_before_open:
+        assert not any(action == "write" and client != holder for client, action in log)
+    if not history.written_since_open:
+        assert not any(action == "write" and client == holder for client, action in log)

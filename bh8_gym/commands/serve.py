@@ -117,7 +117,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--link", metavar="PATH", default=None,
         help="also make a symlink PATH (e.g. /dev/ttyUSB0, for programs with a hard-wired port name) to a "
              "pty of this hand; every open of PATH gets a fresh pty, so nothing a program left unread "
-             "survives its reopening the port, however fast (docs/clients.md); removed on exit",
+             "survives its reopening the port, however fast (docs/clients.md); removed on exit; refused if "
+             "PATH exists (unless a killed bh8 serve left it)",
     )
     parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")

@@ -7,7 +7,9 @@ Choices where the documents are silent (SPEC.md §4, §8):
 - HI (SPEC.md §4): each selected motor opens in velocity mode at IVEL until it stalls against its
   open stop; fingers back off `IHIT_BACKOFF_COUNTS` and hit the stop again until they have hit it
   max(IHIT, 1) times (at most `IHIT_MAX_IMPACTS`); the origin is set so the stop reads −IOFF; a
-  trapezoidal move then brings the motor to 0. HOLD decides what happens at the end.
+  trapezoidal move then brings the motor to 0. HOLD decides what happens at the end. A motor still
+  opening faster than `HI_SEEK_MOVING_CPS` has not stalled; one that stalls short of its open stop
+  is not homed (no origin set there) and HI answers ERR 16.
 - Stall (§5.5 case 1): a driven motor that has not moved more than `STALL_DISTANCE_COUNTS` for
   TSTOP ms (at least `MIN_STALL_WINDOW_MS`) terminates; a profile move whose motor keeps up with
   its profile is not stalled (at its start the profile has not moved that far yet).
@@ -20,9 +22,8 @@ Choices where the documents are silent (SPEC.md §4, §8):
 from __future__ import annotations
 
 from bh8_gym.firmware.clock import TIME_EPS
-from bh8_gym.firmware.parser import CTRL_C
 from bh8_gym.motion_control import ACCEL_SCALE, VELOCITY_SCALE, MotorChannel
-from bh8_gym.protocol import SPREAD_MOTOR
+from bh8_gym.protocol import CTRL_C, SPREAD_MOTOR
 from bh8_gym.status import Status
 
 # Our choice (the manual only says "no motion"): movement below this many counts during TSTOP ms
@@ -47,6 +48,16 @@ IHIT_BACKOFF_COUNTS = 500.0
 # after "M 1000" reads about 1000, not the lag of the decelerating motor).
 GOAL_SETTLE_VELOCITY_CPS = 500.0
 IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded simulated time
+# Our choice for HI (SPEC.md §4): a seeking motor still opening faster than this (counts/s) has not
+# stalled, however little its smoothed encoder moved in TSTOP. Driven at IVEL from rest, the spread
+# gathers speed slowly (about 1000 counts/s after 30 ms at the default FPG) and was taken for stalled
+# wherever it started; at the open stop a motor reads about 0.
+HI_SEEK_MOVING_CPS = 500.0
+# Our choice for HI: how far (plant counts) from the joint's open stop a stalled seek may end and
+# still count as at the stop. Every motor stalls within 5 counts of it (IHIT 0 to 4, seeds 0-11);
+# a seek stalled elsewhere (a drive too weak to move the motor: the spread at FPG 5 drives at 9 % duty
+# against its friction; an obstacle) leaves the motor uninitialised and HI answers ERR 16.
+HI_OPEN_STOP_TOLERANCE_COUNTS = 50.0
 # The motion commands that clear BD and BP as they start (SPEC.md §3.1: "cleared after an O, TO, or HI").
 BREAKAWAY_CLEARING_COMMANDS = ("O", "TO", "HI")
 POSITION_COMMANDS = frozenset(("HOME", "IO", "IC", "M"))  # these report ERR 16 (§5.5)
@@ -150,7 +161,7 @@ class MotionTask:
                     run.progress = run.measure(run.smooth)
                     run.stall_time = t
                 elif (t - run.stall_time) * 1000.0 >= max(v["TSTOP"], MIN_STALL_WINDOW_MS) - TIME_EPS:
-                    ended = True
+                    ended = run.kind != _RUN_HI_SEEK or -self._velocities[m - 1] <= HI_SEEK_MOVING_CPS
                 if not ended and run.kind <= _RUN_VELOCITY and (v["HSG"] < 255 or v["LSG"] < 255):
                     if strain is None:
                         strain = self.plant.strain_gauges()
@@ -168,6 +179,13 @@ class MotionTask:
                 if not ended:
                     continue
                 if run.kind == _RUN_HI_SEEK:
+                    if abs(self._positions[m - 1]) > HI_OPEN_STOP_TOLERANCE_COUNTS:
+                        # Stalled short of the open stop (plant counts: 0 is the stop, Contract 1): no
+                        # home here (§5.2.1); the origin stays as it was, HI answers ERR 16.
+                        self._status[m] = int(Status.COULD_NOT_REACH_POSITION)
+                        self._terminate(m, position)
+                        runs.remove(run)
+                        continue
                     if run.impacts_left > 0:
                         run.impacts_left -= 1
                         run.restart(_RUN_HI_BACKOFF, position + IHIT_BACKOFF_COUNTS, position, t)
@@ -207,7 +225,7 @@ class MotionTask:
             return
         self._update_peak_temperature()
         error = 0
-        if word in POSITION_COMMANDS and any(self._status[m] for m in motors):
+        if (word in POSITION_COMMANDS or word == "HI") and any(self._status[m] for m in motors):
             error = Status.COULD_NOT_REACH_POSITION
         self._reply(error=error)
 

@@ -20,13 +20,12 @@ The command handlers themselves are `SupervisoryCommands` (supervisory.py); Real
 """
 from __future__ import annotations
 
-from bh8_gym.protocol import LINE_END, MOTOR_PREFIXES, MOTORS, PROMPT
+from bh8_gym.protocol import CTRL_C, LINE_END, MOTOR_PREFIXES, MOTORS, PROMPT
 from bh8_gym.realtime_codec import HEADERS_WITH_DATA
 from bh8_gym.status import Status
 
 MAX_LINE_LENGTH = 255  # our choice: longer lines fail with ERR 128
 
-CTRL_C = 0x03
 CR = 0x0D
 LF = 0x0A
 BACKSPACES = (0x08, 0x7F)

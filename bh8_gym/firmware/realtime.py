@@ -22,10 +22,9 @@ Choices where the documents are silent (SPEC.md §5-§8):
 """
 from __future__ import annotations
 
-from bh8_gym.firmware.parser import CTRL_C
 from bh8_gym.parameters import coefficient
 from bh8_gym.motion_control import VELOCITY_SCALE
-from bh8_gym.protocol import LINE_END, PROMPT, seconds_per_byte
+from bh8_gym.protocol import CTRL_C, LINE_END, PROMPT, seconds_per_byte
 from bh8_gym.realtime_codec import HEADERS_WITH_FEEDBACK, LoopLayout
 from bh8_gym.status import Status
 
