@@ -10,9 +10,12 @@ PyBullet can read it safely:
 - OBJ: lines of at most `OBJ_LINE_LIMIT` characters (the reader's buffer splits longer ones, which
   could smuggle a line past a check); `v x y z [...]` with finite numbers within float32; faces
   `f` of at least two vertices (two make no triangle and are skipped), each `i`, `i/j`, `i/j/k`
-  or `i//k`, whose vertex number `i` names a vertex defined above it (1..n, or -n..-1 counted back; 0 is no vertex). Texture and
-  normal numbers are bounds-checked by the reader itself and only need to be integers. Other
-  lines (`vn`, `vt`, `g`, `o`, `usemtl`, comments, ...) are left to it.
+  or `i//k`, whose vertex number `i` names a vertex defined above it (1..n, or -n..-1 counted
+  back; 0 is no vertex). The texture and normal numbers `j` and `k` must be written and not 0:
+  the reader bounds-checks them itself, but it refuses a 0 (`createCollisionShape failed`), and
+  it reads a missing one (`i/`, `i/j/`) as 0, or as the next entry's number when a space follows
+  (measured on pybullet 3.2.7). Other lines (`vn`, `vt`, `g`, `o`, `usemtl`, comments, ...) are
+  left to it.
 - STL: binary, `84 + 50 × n` bytes for its n ≥ 1 triangles, every vertex finite.
 - Either: a regular file of at most `MESH_FILE_LIMIT_BYTES`, with at least one face.
 
@@ -38,7 +41,8 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 # A C int's digits: the reader converts indices with atoi, which has no defined result past them.
 _INDEX_DIGITS = 9
 _FLOAT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_FACE_VERTEX = re.compile(r"(-?[0-9]+)(?:/(-?[0-9]*))?(?:/(-?[0-9]*))?")
+# i, i/j, i/j/k or i//k: the groups are i, then j of i/j, j and k of i/j/k, or k of i//k.
+_FACE_VERTEX = re.compile(r"(-?[0-9]+)(?:/(-?[0-9]+)|/(-?[0-9]+)/(-?[0-9]+)|//(-?[0-9]+))?")
 _SPACES = re.compile(r"[ \t]+")
 _STL_HEADER_BYTES = 84
 _STL_TRIANGLE = np.dtype([("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
@@ -125,6 +129,9 @@ def _obj_face_vertex(path: str, number: int, field: str, defined: int) -> int:
     found = _FACE_VERTEX.fullmatch(field)
     if found is None or any(part and len(part.lstrip("-")) > _INDEX_DIGITS for part in found.groups()):
         raise MeshError(f"mesh {path!r} line {number}: {field!r:.40} is not a face vertex (i, i/j, i/j/k or i//k)")
+    if any(part is not None and int(part) == 0 for part in found.groups()[1:]):
+        raise MeshError(f"mesh {path!r} line {number}: face vertex {field!r:.40} has a texture or normal number "
+                        "of 0, which PyBullet refuses (they count from 1, or back from -1)")
     index = int(found.group(1))
     resolved = index - 1 if index > 0 else defined + index
     if index == 0 or not 0 <= resolved < defined:
