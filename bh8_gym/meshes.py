@@ -70,23 +70,25 @@ def _checked_bounds(path: str, size: int, mtime_ns: int, inode: int) -> tuple[tu
     suffix = Path(path).suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise MeshError(f"mesh {path!r}: PyBullet builds collision shapes from {' and '.join(MESH_SUFFIXES)} files only")
-    data = _read_regular_file(path)
+    data = read_regular_file(path, MESH_FILE_LIMIT_BYTES, "mesh", MeshError)
     vertices = _obj_vertices(path, data) if suffix == ".obj" else _stl_vertices(path, data)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     return tuple(float(v) for v in low), tuple(float(v) for v in high)
 
 
-def _read_regular_file(path: str) -> bytes:
+def read_regular_file(path: str, limit: int, what: str, error_type: type[ValueError]) -> bytes:
+    """The bytes of `path`, a regular file of at most `limit` bytes (a FIFO or device is refused
+    unread), or an `error_type` naming it as `what` ("mesh", "URDF")."""
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block the open
-    except OSError as error:
-        raise MeshError(f"mesh {path!r} cannot be read: {error.strerror or error}") from None
+    except (OSError, ValueError) as error:  # ValueError: a NUL in the name
+        raise error_type(f"{what} {path!r} cannot be read: {getattr(error, 'strerror', None) or error}") from None
     with os.fdopen(fd, "rb") as handle:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise MeshError(f"mesh {path!r} is not a regular file")
-        data = handle.read(MESH_FILE_LIMIT_BYTES + 1)
-    if len(data) > MESH_FILE_LIMIT_BYTES:
-        raise MeshError(f"mesh {path!r} is larger than {MESH_FILE_LIMIT_BYTES >> 20} MB")
+            raise error_type(f"{what} {path!r} is not a regular file")
+        data = handle.read(limit + 1)
+    if len(data) > limit:
+        raise error_type(f"{what} {path!r} is larger than {limit >> 20} MB")
     return data
 
 
