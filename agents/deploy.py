@@ -28,7 +28,9 @@ of the host's monotonic clock, for intervals between records).
 The arm phase in the observation follows the env's ArmSchedule from the first control block:
 the robot arm carrying the hand must run the same grasp/lift/hold schedule.
 Policies trained with privileged (simulation-only) observations are refused, and so is a policy
-file that is damaged (an .npz whose layers do not chain) before the port is opened. An SB3 .zip
+file that is damaged (an .npz whose layers do not chain), whose observation or action size is not
+the env's, or that gives no finite action for a test observation (one forward pass), all before
+the port is opened. An SB3 .zip
 is loaded without unpickling anything (`--trust-file` allows it); its pickle-free export beside
 it (`bh8 export`'s `MODEL.npz`, not older than the .zip) is deployed instead when there is one.
 A policy that fails mid-run (raises) is a stop like a safety limit, with exit status 2.
@@ -47,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
+from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import BarrettHand
 from bh8_gym.envs.interfaces import interface_for
@@ -81,7 +83,9 @@ class PolicyFailure(Exception):
 
 
 def check_deployable(policy, interface: LoopInterface) -> None:
-    """Refuse privileged policies and policies whose observation size is not what a host builds."""
+    """Refuse privileged policies, policies whose observation or action size is not the env's, and
+    policies that do not give a finite action for the first observation a host builds (a feedback
+    block of zeros) and for zeros: all before the port is opened (PolicyFileError for the last)."""
     if policy.privileged or interface.privileged:
         raise DeployError("this policy was trained with privileged (simulation-only) observations; "
                           "a real hand cannot provide them - retrain with privileged=False")
@@ -89,6 +93,12 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     if policy.observation_dim != host_size:
         raise DeployError(f"the policy expects {policy.observation_dim} observations but a host builds "
                           f"{host_size} from a feedback block")
+    fields = interface.layout.control_fields
+    if policy.action_dim != len(fields):
+        raise DeployError(f"the policy gives {policy.action_dim} actions but the env's control block has "
+                          f"{len(fields)} fields ({', '.join(f'{name} {motor}' for motor, name in fields)})")
+    first = interface.observation_from_feedback([0] * len(interface.layout.feedback_fields), [0] * len(fields), 0.0)
+    check_policy_runs(policy, [first, np.zeros(host_size, dtype=np.float32)], interface.action_space.shape)
 
 
 class Deployment:

@@ -122,7 +122,8 @@ def _mesh_names(path: str, data: bytes) -> list[str]:
                         "otherwise, so it is refused") from None
     names = []
     for element in root.iter():
-        if not isinstance(element.tag, str) or element.tag.rpartition("}")[2] != "mesh" or "filename" not in element.attrib:
+        local_name = element.tag.rpartition("}")[2] if isinstance(element.tag, str) else ""  # not a comment or PI
+        if local_name != "mesh" or "filename" not in element.attrib:
             continue
         name = element.attrib["filename"]
         if any(char.isspace() or ord(char) < 32 or ord(char) == 127 for char in name):

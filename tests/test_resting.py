@@ -75,7 +75,8 @@ def test_the_resting_pose_follows_the_files_content_not_its_path(tmp_path):
     box centred on its origin stands; the same box beside its origin (its mass centre outside its
     footprint) falls on its side. Both are settled at the same size, so a shape cached by path and
     scale would be stale as well; the old content is still remembered."""
-    standing, falling = _box_obj((-0.01, -0.015, 0.0), (0.01, 0.015, 0.08)), _box_obj((0.01, -0.015, 0.0), (0.03, 0.015, 0.08))
+    standing = _box_obj((-0.01, -0.015, 0.0), (0.01, 0.015, 0.08))
+    falling = _box_obj((0.01, -0.015, 0.0), (0.03, 0.015, 0.08))
     reference = tmp_path / "falling.obj"
     reference.write_text(falling)
     expected = resting_pose(ObjectSpec(kind="mesh", path=str(reference), scale=1.0, mass=0.1))

@@ -51,8 +51,8 @@ def layout(tmp_path):
     urdf_dir, cwd = tmp_path / "objects" / "urdf", tmp_path / "cwd"
     for folder in (urdf_dir / "sub", urdf_dir / "meshes", cwd / "meshes"):
         folder.mkdir(parents=True)
-    files = {urdf_dir / "good.obj": GOOD_OBJ, urdf_dir / "badface.obj": BAD_OBJ, urdf_dir / "sub" / "badface.obj": BAD_OBJ,
-             urdf_dir / "BADFACE.OBJ": BAD_OBJ, urdf_dir / "meshes" / "part.obj": GOOD_OBJ,
+    files = {urdf_dir / "good.obj": GOOD_OBJ, urdf_dir / "badface.obj": BAD_OBJ,
+             urdf_dir / "sub" / "badface.obj": BAD_OBJ, urdf_dir / "BADFACE.OBJ": BAD_OBJ, urdf_dir / "meshes" / "part.obj": GOOD_OBJ,
              cwd / "meshes" / "part.obj": BAD_OBJ, tmp_path / "objects" / "up.obj": BAD_OBJ,
              urdf_dir / "bad\tface.obj": BAD_OBJ, urdf_dir / "bad\nface.obj": BAD_OBJ,
              urdf_dir / "good&e;.obj": BAD_OBJ, urdf_dir / "bad.dae": BAD_DAE}
@@ -123,7 +123,8 @@ BENIGN = {
     "package://": lambda d: robot("package://good.obj"),
     "file://": lambda d: robot("file://good.obj"),
     "a sub-folder": lambda d: robot("meshes/part.obj").replace("meshes/", "./meshes/../meshes/"),
-    "an XML declaration and a comment": lambda d: robot("good.obj", head='<?xml version="1.0" encoding="UTF-8"?><!-- x -->'),
+    "an XML declaration and a comment": lambda d: robot("good.obj",
+                                                        head='<?xml version="1.0" encoding="UTF-8"?><!-- x -->'),
     "a character reference": lambda d: robot("good&#46;obj"),
 }
 

@@ -8,9 +8,9 @@ fingers. `resting_pose(spec)` drops the mesh once (at a fixed size: the pose it 
 does not depend on its scale) on a plane in a private PyBullet world and returns the orientation it
 comes to rest in and its extents lying so (cached by the file's content, a SHA-256 of its bytes:
 the same mesh always rests the same way on one machine, and a file rewritten in place is settled
-again; the scale it is settled at follows from those bytes). Set down so, 4 of the 100 validation models still tilt more than 10° in
-a second (a marginal facet at their own size and friction), against 56 as loaded. Primitives are
-made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
+again; the scale it is settled at follows from those bytes). Set down so, 4 of the 100
+validation models still tilt more than 10° in a second (a marginal facet at their own size and
+friction), against 56 as loaded. Primitives are made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
 their orientation.
 """
 from __future__ import annotations
