@@ -645,12 +645,15 @@ def test_deploy_stops_safely_when_the_policy_outputs_nan(tmp_path):
     exported = load_policy(_export_untrained_reach_policy(tmp_path))
 
     class DivergingPolicy:
-        privileged, observation_dim = exported.privileged, exported.observation_dim
+        privileged, observation_dim, action_dim, path = (exported.privileged, exported.observation_dim,
+                                                         exported.action_dim, exported.path)
 
         def __init__(self):
             self.calls = 0
 
         def predict(self, observation, deterministic=True):
+            if np.ndim(observation) == 2:  # deploy's test of the policy before it runs, not a cycle
+                return exported.predict(observation, deterministic=deterministic)
             self.calls += 1
             action, state = exported.predict(observation, deterministic=deterministic)
             if self.calls > 3:
