@@ -118,8 +118,7 @@ def _mesh_names(path: str, data: bytes) -> list[str]:
         parser.feed(data)
         root = parser.close()
     except ElementTree.ParseError as error:
-        raise UrdfError(f"URDF {path!r} is not well-formed XML ({error}); PyBullet's XML reader may read it "
-                        "otherwise, so it is refused") from None
+        raise UrdfError(f"URDF {path!r} is not well-formed XML ({error})") from None
     names = []
     for element in root.iter():
         local_name = element.tag.rpartition("}")[2] if isinstance(element.tag, str) else ""  # not a comment or PI
