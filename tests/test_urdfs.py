@@ -173,16 +173,19 @@ def test_any_urdf_is_refused_or_loads_without_crashing(layout, prefix, name, ext
     assert _load_in_a_child(urdf, cwd) in (0, 2), text
 
 
-@pytest.mark.parametrize("command", ["render", "eval"])
+@pytest.mark.parametrize("command", ["serve", "render", "eval"])
 def test_the_commands_refuse_a_hostile_urdf_with_one_line(layout, tmp_path, command):
-    """`bh8 render --object` and `bh8 eval --object-files` died with exit 139 on a URDF naming
-    `file://badface.obj`; now exit 2 and a one-line message naming the mesh."""
+    """`bh8 serve --object`, `bh8 render --object` and `bh8 eval --object-files` died with exit 139
+    on a URDF naming `file://badface.obj`; now exit 2 and a one-line message naming the mesh."""
     urdf_dir, _ = layout
     urdf = urdf_dir / "part.urdf"
     urdf.write_text(robot("file://badface.obj"))
-    argv = {"render": ["render", "--object", str(urdf), "-o", str(tmp_path / "x.png")],
+    argv = {"serve": ["serve", "--object", str(urdf), "--state", str(tmp_path / "store")],
+            "render": ["render", "--object", str(urdf), "-o", str(tmp_path / "x.png")],
             "eval": ["eval", "--baseline", "loop", "--object-files", str(urdf), "--episodes", "1", "--no-progress",
                      "--gif-episodes", "0"]}[command]
     result = subprocess.run([sys.executable, "-m", "bh8_gym.cli", *argv], capture_output=True, text=True, timeout=300)
     assert result.returncode == 2, (result.returncode, result.stderr[-800:])
-    assert "face vertex 999999 is not one of the 3 vertices" in result.stderr and "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith(f"bh8 {command}: ")]
+    assert len(errors) == 1 and "face vertex 999999 is not one of the 3 vertices" in errors[0]
+    assert "Traceback" not in result.stderr
