@@ -24,11 +24,16 @@ and keyword arguments without the simulator: deploy never loads PyBullet):
 4. switch the hand back to `--baud`, the rate it was found at.
 
 Every control and feedback block is logged as one JSONL line (hex bytes, cycle, and `t`: seconds
-of the host's monotonic clock, for intervals between records).
+of the host's monotonic clock, for intervals between records), each record whole or not at all
+(`RecordLog`). The log never stands in the way of the safe exit: a record that cannot be written
+(a full disk) ends the logging and stops the run at the next cycle boundary like a limit, and the
+zero-velocity block, ^C, the exit action and the switch back to `--baud` follow as always.
 The arm phase in the observation follows the env's ArmSchedule from the first control block:
 the robot arm carrying the hand must run the same grasp/lift/hold schedule.
 Policies trained with privileged (simulation-only) observations are refused, and so is a policy
-file that is damaged (an .npz whose layers do not chain) before the port is opened. An SB3 .zip
+file that is damaged (an .npz whose layers do not chain), whose observation or action size is not
+the env's, or that gives no finite action for a test observation (one forward pass), all before
+the port is opened. An SB3 .zip
 is loaded without unpickling anything (`--trust-file` allows it); its pickle-free export beside
 it (`bh8 export`'s `MODEL.npz`, not older than the .zip) is deployed instead when there is one.
 A policy that fails mid-run (raises) is a stop like a safety limit, with exit status 2.
@@ -37,8 +42,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -47,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
+from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import BarrettHand
 from bh8_gym.envs.interfaces import interface_for
@@ -72,6 +79,44 @@ class DeployError(RuntimeError):
     """A policy or hand that deploy refuses to run (the message says why)."""
 
 
+class RecordLog:
+    """A JSONL log file written a record at a time, each whole or not at all: one unbuffered write
+    per record, cut back off the file if the disk took only part of it (on a full disk the log
+    ended mid-record). `write` raises the OSError of a record it could not write."""
+
+    def __init__(self, path: Path):
+        try:
+            self._file = open(path, "wb", buffering=0)  # noqa: SIM115 (closed by close())
+        except OSError as error:
+            raise DeployError(f"cannot write the log: {error}") from None
+        self._size = 0
+
+    def write(self, text: str) -> None:
+        data = memoryview(text.encode())
+        written = 0
+        try:
+            while written < len(data):  # a write cut short is retried: the next one says why (a full disk)
+                count = self._file.write(data[written:])
+                if not count:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                written += count
+        except OSError:
+            with contextlib.suppress(OSError):
+                self._file.truncate(self._size)
+                self._file.seek(self._size)
+            raise
+        self._size += written
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> "RecordLog":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
 class SafetyStop(Exception):
     """A safety limit tripped; the message names the limit and the reading."""
 
@@ -81,7 +126,9 @@ class PolicyFailure(Exception):
 
 
 def check_deployable(policy, interface: LoopInterface) -> None:
-    """Refuse privileged policies and policies whose observation size is not what a host builds."""
+    """Refuse privileged policies, policies whose observation or action size is not the env's, and
+    policies that do not give a finite action for the first observation a host builds (a feedback
+    block of zeros) and for zeros: all before the port is opened (PolicyFileError for the last)."""
     if policy.privileged or interface.privileged:
         raise DeployError("this policy was trained with privileged (simulation-only) observations; "
                           "a real hand cannot provide them - retrain with privileged=False")
@@ -89,6 +136,12 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     if policy.observation_dim != host_size:
         raise DeployError(f"the policy expects {policy.observation_dim} observations but a host builds "
                           f"{host_size} from a feedback block")
+    fields = interface.layout.control_fields
+    if policy.action_dim != len(fields):
+        raise DeployError(f"the policy gives {policy.action_dim} actions but the env's control block has "
+                          f"{len(fields)} fields ({', '.join(f'{name} {motor}' for motor, name in fields)})")
+    first = interface.observation_from_feedback([0] * len(interface.layout.feedback_fields), [0] * len(fields), 0.0)
+    check_policy_runs(policy, [first, np.zeros(host_size, dtype=np.float32)], interface.action_space.shape)
 
 
 class Deployment:
@@ -134,12 +187,22 @@ class Deployment:
         self.hand_error = None  # the port or hand failure that ended the run (BH8Error), if one did
         self.policy_error = None  # the policy's failure that ended the run (PolicyFailure), if one did
         self.safe_exit_error = None  # why finish() could not leave the hand safe (BH8Error), if it could not
+        self.log_error = None  # why the log stopped (OSError), if a record could not be written
         self._stop_request = None  # set by a signal handler: why to stop at the next cycle boundary
         self.found_baud = hand.baudrate
         self.baud_error = None  # why the hand could not be switched back to found_baud, if it could not
 
     def _log(self, record: dict) -> None:
-        self.log_file.write(json.dumps(record) + "\n")
+        """Log one record; a failure ends the logging (the file keeps the records before it) and
+        asks for a stop at the next cycle boundary, never interrupting what the hand is sent."""
+        if self.log_error is not None:
+            return
+        try:
+            self.log_file.write(json.dumps(record) + "\n")
+        except OSError as error:
+            self.log_error = error
+            if self._stop_request is None:
+                self._stop_request = f"the log cannot be written ({error.strerror or error})"
 
     def setup(self, baud_rate: int) -> None:
         """Switch the rate, run the env's setup script, enter LOOP; check the layout agrees."""
@@ -346,7 +409,8 @@ exit status:
   2    usage error: a bad option value, an unwritable log, or a policy deploy refuses (a damaged or
        privileged policy file, before the port is opened; or one that fails mid-run: the hand is
        left safe and the stop record names the cycle)
-  3    stopped early, safely: a safety limit, a non-finite policy output, Ctrl-C, SIGTERM or SIGHUP
+  3    stopped early, safely: a safety limit, a non-finite policy output, Ctrl-C, SIGTERM or SIGHUP,
+       or a log record that could not be written (a full disk: the log keeps the whole records before it)
   130  Ctrl-C while connecting or in the setup, before the first block (in the setup: ^C to the
        hand, which stops HI, and the rate switched back)
 """
@@ -420,7 +484,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         cycles = interface.nominal_episode_steps() if args.cycles is None else args.cycles
-        with BarrettHand(args.port, baudrate=args.baud) as hand, args.log.open("w") as log_file:
+        with BarrettHand(args.port, baudrate=args.baud) as hand, RecordLog(args.log) as log_file:
             deployment = Deployment(hand, policy, interface, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,
                                     on_exit=args.on_exit, clock=args.clock)
@@ -450,6 +514,9 @@ def run(args: argparse.Namespace) -> int:
         commands = "zero-velocity block, ^C" + ("" if args.on_exit == "none" else f", {args.on_exit}")
         print(f"bh8 deploy: the safe-exit commands ({commands}) could not be sent: {error_text(deployment.safe_exit_error)}",
               file=sys.stderr)
+    if deployment.log_error is not None:
+        print(f"bh8 deploy: the log {str(args.log)!r} stopped at a record it could not write "
+              f"({error_text(deployment.log_error)}); the records before it are whole", file=sys.stderr)
     if deployment.baud_error is not None:
         print(f"bh8 deploy: the hand stays at {interface.baud} baud (switching back to {args.baud} failed: "
               f"{deployment.baud_error}); connect with --baud {interface.baud}", file=sys.stderr)
@@ -457,4 +524,4 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if deployment.policy_error is not None:
         return 2  # a bad policy, found mid-run: the hand was left safe
-    return 0 if reason == "done" else 3
+    return 0 if reason == "done" and deployment.log_error is None else 3

@@ -33,12 +33,12 @@ from tqdm import tqdm
 
 from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, load_policy
-from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations
+from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
+from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.cli import integer_argument, json_object_argument
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
-from bh8_gym.rendering import steps_per_frame, write_animation
+from bh8_gym.rendering import encode_gif, steps_per_frame
 
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
@@ -335,8 +335,10 @@ def plot_training_curve(rows: Sequence[dict[str, float]], path: Path) -> Path:
     bottom.set_xlabel("env steps")
     figure.tight_layout()
     path = Path(path)
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
+    try:
+        atomic_write(path, lambda handle: figure.savefig(handle, format="png", dpi=100))
+    finally:
+        plt.close(figure)
     return path
 
 
@@ -369,7 +371,8 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
                     frames.append(env.render())
     finally:
         env.close()
-    write_animation(frames, str(path), fps=fps)
+    gif = encode_gif(frames, fps)
+    atomic_write(Path(path), lambda handle: handle.write(gif))
     return Path(path)
 
 
@@ -499,21 +502,38 @@ def run(args: argparse.Namespace) -> int:
                                                                        [theirs[i] for i in episodes])))
         print(paired_line(f"paired with {args.compare}", paired))
     if args.out is not None:
-        (args.out / "table.md").write_text(group_table(results) + "\n\n" + table + "\n")
-        (args.out / "results.json").write_text(json.dumps(
-            {"summary": summary, "by_object_set": summaries_by(results, "object_set"),
-             "by_family": summaries_by(results, "family"), "episodes": [asdict(r) for r in results],
-             "env_id": env_id, "seed": args.seed, "object_sets": object_sets,
-             "env_kwargs": env_kwargs,  # the first object set's (the others differ in object_set only)
-             "policy": label, "paired": paired}, indent=2, default=str))
-        curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
-        if curve_dir is not None:
-            for folder in (curve_dir, curve_dir.parent):
-                if (folder / EVALUATIONS_FILE).exists():
-                    plot_training_curve(read_evaluations(folder), args.out / "training_curve.png")
-                    break
-        if args.gif_episodes > 0:
-            record_gif(policy, env_id, env_kwargs, args.out / "episodes.gif", args.gif_episodes, args.seed,
-                       baseline=baseline)
+        # Each report file is replaced whole or not at all (a full disk cut results.json and lost the last report).
+        try:
+            write_text_atomic(args.out / "table.md", group_table(results) + "\n\n" + table + "\n")
+            write_text_atomic(args.out / "results.json", json.dumps(
+                {"summary": summary, "by_object_set": summaries_by(results, "object_set"),
+                 "by_family": summaries_by(results, "family"), "episodes": [asdict(r) for r in results],
+                 "env_id": env_id, "seed": args.seed, "object_sets": object_sets,
+                 "env_kwargs": env_kwargs,  # the first object set's (the others differ in object_set only)
+                 "policy": label, "paired": paired}, indent=2, default=str))
+            curve_dir = args.curve or (args.policy.parent if args.policy is not None else None)
+            if curve_dir is not None:
+                plot_run_curve(curve_dir, args.out / "training_curve.png")
+            if args.gif_episodes > 0:
+                record_gif(policy, env_id, env_kwargs, args.out / "episodes.gif", args.gif_episodes, args.seed,
+                           baseline=baseline)
+        except OSError as error:
+            print(f"bh8 eval: cannot write the report in {str(args.out)!r}: {error}", file=sys.stderr)
+            return 1
         print(f"report written to {args.out}")
     return 0
+
+
+def plot_run_curve(curve_dir: Path, path: Path) -> None:
+    """The training curve of the run in `curve_dir` (or its parent) to `path`, if it has one; its
+    rows cut short are left out, and said so on stderr."""
+    for folder in (curve_dir, curve_dir.parent):
+        if (folder / EVALUATIONS_FILE).exists():
+            skipped: list[int] = []
+            rows = read_evaluations(folder, skipped)
+            if skipped:
+                print(f"bh8 eval: {str(folder / EVALUATIONS_FILE)!r}: left out line(s) "
+                      f"{', '.join(map(str, skipped))}, cut short (a kill or a full disk mid-write)", file=sys.stderr)
+            if rows:
+                plot_training_curve(rows, path)
+            return

@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
+import pickle
 import re
 import tempfile
 import zipfile
@@ -38,7 +40,14 @@ FORMAT = "bh8-numpy-policy/1"
 # so a zip bomb cannot exhaust memory.
 POLICY_FILE_LIMIT_BYTES = 1 << 30
 SB3_DATA_LIMIT_BYTES = 16 << 20  # the `data` JSON of an SB3 .zip
+# What an SB3 .zip may make SB3 build when it is loaded (bh8-gym's networks have about 20 k
+# parameters, two layers of 128; its buffers about 10 M numbers); _check_sb3_sizes.
+SB3_LAYER_WIDTH_LIMIT = 4096
+SB3_PARAMETER_LIMIT = 1 << 25  # 128 MB of float32 weights
+SB3_BUFFER_VALUE_LIMIT = 1 << 28  # numbers in the rollout or replay buffer (1 GB of float32)
+SB3_SPACE_LIMIT = 1 << 16  # entries of an observation or action
 MAX_LAYERS = 64
+NPZ_MEMBER_LIMIT = 2 * MAX_LAYERS + 16  # an export's arrays: two per layer and eight others
 
 _ACTIVATIONS = {
     "tanh": np.tanh,
@@ -94,11 +103,11 @@ class NumpyPolicy:
                 raise PolicyFileError(f"{str(self.path)!r} is not an .npz file (truncated, or something else); "
                                       "export the policy again")
             with zipfile.ZipFile(self.path) as archive:
-                if sum(member.file_size for member in archive.infolist()) > POLICY_FILE_LIMIT_BYTES:
-                    raise PolicyFileError(f"{str(self.path)!r} unpacks to more than {POLICY_FILE_LIMIT_BYTES >> 20} MB: "
-                                          "not an exported policy")
+                _check_npz_members(archive, self.path)
             with np.load(self.path, allow_pickle=False) as data:
                 arrays = {name: data[name] for name in data.files}
+        except PolicyFileError:
+            raise
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
             raise PolicyFileError(f"cannot read policy file {str(self.path)!r}: {exc}") from exc
         if "format" not in arrays or str(arrays["format"]) != FORMAT:
@@ -109,6 +118,8 @@ class NumpyPolicy:
             raise
         except (KeyError, ValueError, TypeError) as exc:  # json's errors are ValueErrors
             raise PolicyFileError(f"{str(self.path)!r} is damaged ({type(exc).__name__}: {exc}); export it again") from None
+        except RecursionError:  # JSON nested past the interpreter's stack (an export's is one flat object)
+            raise PolicyFileError(f"{str(self.path)!r} is damaged: its metadata is nested too deep; export it again") from None
 
     def _read(self, arrays: dict[str, np.ndarray]) -> None:
         self.metadata: dict[str, Any] = json.loads(str(arrays["metadata"]))
@@ -195,6 +206,54 @@ class NumpyPolicy:
             action = np.clip(x, self.action_low, self.action_high)
         action = action.astype(np.float32)
         return (action[0] if single else action), None
+
+
+def _check_npz_members(archive: zipfile.ZipFile, path: Path) -> None:
+    """Refuse, before numpy reads it, an .npz that cannot be an export: more members than
+    NPZ_MEMBER_LIMIT, more than POLICY_FILE_LIMIT_BYTES unpacked, or a member whose .npy header
+    declares other than the data it holds (numpy allocates what the header declares before reading:
+    a header declaring 10^12 floats was an allocation error)."""
+    members = archive.infolist()
+    if len(members) > NPZ_MEMBER_LIMIT:
+        raise PolicyFileError(f"{str(path)!r} holds {len(members)} arrays, more than an export's {NPZ_MEMBER_LIMIT}: "
+                              "not an exported policy")
+    if sum(member.file_size for member in members) > POLICY_FILE_LIMIT_BYTES:
+        raise PolicyFileError(f"{str(path)!r} unpacks to more than {POLICY_FILE_LIMIT_BYTES >> 20} MB: "
+                              "not an exported policy")
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    for member in members:
+        with archive.open(member) as handle:
+            version = np.lib.format.read_magic(handle)
+            if version not in readers:
+                raise PolicyFileError(f"{str(path)!r}: {member.filename!r} is an .npy of version {version}, "
+                                      "which numpy's savez does not write: not an exported policy")
+            shape, _, dtype = readers[version](handle)
+            declared, held = math.prod(shape) * dtype.itemsize, member.file_size - handle.tell()
+        if declared != held:
+            raise PolicyFileError(f"{str(path)!r} is damaged: {member.filename!r} declares {declared} bytes of "
+                                  f"data but holds {held}; export it again")
+
+
+def check_policy_runs(policy, observations, action_shape: tuple[int, ...]) -> None:
+    """PolicyFileError unless `policy` gives a finite action of `action_shape` for each of the
+    `observations`: a forward pass before anything depends on the policy (one whose weights
+    overflow to NaN, or whose last layer has an output too few, passes the load checks). Each is
+    passed as a batch of one, computed as a single observation is (a larger batch goes through
+    other BLAS kernels, which can turn the NaN of inf - inf into an infinity)."""
+    for observation in observations:
+        try:
+            with np.errstate(all="ignore"):  # an overflow is reported below, not warned about
+                batch = np.asarray(observation, dtype=np.float32)[None]
+                action = np.asarray(policy.predict(batch, deterministic=True)[0])
+        except Exception as error:  # whatever a broken policy raises, named on one line
+            raise PolicyFileError(f"{str(policy.path)!r} fails on a test observation ({type(error).__name__}: "
+                                  f"{error})") from None
+        if action.shape != (1, *action_shape):
+            raise PolicyFileError(f"{str(policy.path)!r} gives actions of shape {action.shape[1:]}, the env's are "
+                                  f"{tuple(action_shape)}")
+        if not np.all(np.isfinite(action)):
+            raise PolicyFileError(f"{str(policy.path)!r} gives a non-finite action ({action[0].tolist()}) for a test "
+                                  "observation: its weights overflow, or are not a trained policy's")
 
 
 def _linear_chain(modules) -> tuple[list, list[str]]:
@@ -331,13 +390,15 @@ def _allowed_classes() -> dict[str, type]:
     return {f"{cls.__module__}.{cls.__qualname__}": cls for cls in classes}
 
 
-def _stand_ins(raw: bytes, path: Path) -> dict[str, Any]:
-    """For an SB3 .zip's bytes: a stand-in for every pickled entry of its `data` JSON, so that SB3
-    unpickles nothing (`custom_objects`). PolicyFileError for an entry that has none."""
+def _sb3_data(raw: bytes, path: Path) -> tuple[dict | None, int]:
+    """An SB3 .zip's `data` JSON (None if it has none: not an SB3 model, SB3's own error says so)
+    and the unpacked size of its weights (`policy.pth`, 0 without), read without unpickling."""
     try:
         with zipfile.ZipFile(io.BytesIO(raw)) as archive:
-            if "data" not in archive.namelist():
-                return {}  # not an SB3 model: SB3's own error says so
+            names = archive.namelist()
+            if "data" not in names:
+                return None, 0
+            weights = archive.getinfo("policy.pth").file_size if "policy.pth" in names else 0
             with archive.open("data") as member:
                 text = member.read(SB3_DATA_LIMIT_BYTES + 1)
         if len(text) > SB3_DATA_LIMIT_BYTES:
@@ -347,6 +408,65 @@ def _stand_ins(raw: bytes, path: Path) -> dict[str, Any]:
         raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
     if not isinstance(data, dict):
         raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: its data is not a JSON object")
+    return data, weights
+
+
+def _check_sb3_sizes(data: dict, weights_bytes: int, path: Path) -> None:
+    """PolicyFileError unless what SB3 builds when it loads the model `data` describes is bounded,
+    checked before it builds anything (a 20 KB .zip asking for net_arch [12000, 12000] took minutes
+    and 3 GB; n_steps 1e12 was an allocation error): the spaces, the buffer SB3 allocates (rollout:
+    n_steps x n_envs transitions; replay: buffer_size), every layer's width and the network's depth,
+    and the parameters, which must fit in the weights the file stores (4 bytes each at least)."""
+    def bad(what: str) -> PolicyFileError:
+        return PolicyFileError(f"{str(path)!r}: {what}; not a model bh8-gym loads")
+
+    def count(where: dict, key: str, default: int, limit: int) -> int:
+        value = where.get(key, default)
+        if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= limit):
+            raise bad(f"{key} must be a whole number from 1 to {limit}, got {value!r:.40}")
+        return value
+
+    def space_size(key: str) -> int:
+        shape = (data.get(key) or {}).get("_shape") if isinstance(data.get(key), dict) else None
+        if not (isinstance(shape, list) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in shape)
+                and math.prod(shape) <= SB3_SPACE_LIMIT):
+            raise bad(f"its {key} must have a shape of at most {SB3_SPACE_LIMIT} entries, got {shape!r:.60}")
+        return math.prod(shape)
+
+    observations, actions = space_size("observation_space"), space_size("action_space")
+    off_policy = "buffer_size" in data  # SAC; PPO has n_steps
+    if off_policy:
+        transitions = count(data, "buffer_size", 1, SB3_BUFFER_VALUE_LIMIT)
+    else:
+        transitions = count(data, "n_steps", 1, SB3_BUFFER_VALUE_LIMIT) * count(data, "n_envs", 1, SB3_BUFFER_VALUE_LIMIT)
+    if transitions * (observations + actions) > SB3_BUFFER_VALUE_LIMIT:
+        raise bad(f"its {'replay' if off_policy else 'rollout'} buffer would hold {transitions} transitions of "
+                  f"{observations + actions} numbers, more than {SB3_BUFFER_VALUE_LIMIT}")
+    kwargs = data.get("policy_kwargs") if isinstance(data.get("policy_kwargs"), dict) else {}
+    net_arch = kwargs.get("net_arch")
+    nets = net_arch if isinstance(net_arch, dict) else {"pi": net_arch, ("qf" if off_policy else "vf"): net_arch}
+    parameters = 0
+    for name, widths in nets.items():
+        if widths is None:
+            continue  # SB3's default: two layers of 64 (PPO) or 256 (SAC)
+        if not (isinstance(widths, list) and len(widths) <= MAX_LAYERS and all(
+                isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= SB3_LAYER_WIDTH_LIMIT for v in widths)):
+            raise bad(f"its net_arch must list at most {MAX_LAYERS} layer widths from 1 to {SB3_LAYER_WIDTH_LIMIT}, "
+                      f"got {widths!r:.60}")
+        inputs, outputs, copies = {"pi": (observations, actions, 1), "vf": (observations, 1, 1),
+                                   # SAC: n_critics Q-networks and their target copies
+                                   "qf": (observations + actions, 1, 2 * count(kwargs, "n_critics", 2, 64))}.get(
+                                      name, (observations, 1, 1))
+        sizes = [inputs, *widths, outputs]
+        parameters += copies * sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
+    if parameters > SB3_PARAMETER_LIMIT or 4 * parameters > weights_bytes:
+        raise bad(f"its net_arch makes a network of {parameters} parameters, but the file stores "
+                  f"{weights_bytes} bytes of weights (and bh8-gym loads at most {SB3_PARAMETER_LIMIT})")
+
+
+def _stand_ins(data: dict, path: Path) -> dict[str, Any]:
+    """For an SB3 .zip's `data` JSON: a stand-in for every pickled entry, so that SB3 unpickles
+    nothing (`custom_objects`). PolicyFileError for an entry that has none."""
     pickled = {key: value for key, value in data.items() if isinstance(value, dict) and ":serialized:" in value}
     unknown = sorted(set(pickled) - set(SB3_STAND_INS))
     if unknown:
@@ -431,12 +551,21 @@ class SB3Policy:
             raw = Path(path).read_bytes()
         except OSError as error:
             raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
-        custom_objects = None if trust else _stand_ins(raw, Path(path))
+        data, weights_bytes = _sb3_data(raw, Path(path))
+        if data is not None:
+            _check_sb3_sizes(data, weights_bytes, Path(path))
+        custom_objects = None if trust or data is None else _stand_ins(data, Path(path))
         errors = []
         for algorithm in candidates:
             try:
                 self.model = algorithm.load(io.BytesIO(raw), device=device, custom_objects=custom_objects)
                 break
+            except pickle.UnpicklingError:
+                # torch's weights-only loader refused a pickled object among the weights; its message
+                # advises loading with weights_only=False, which would run it: not said here
+                raise PolicyFileError(f"{str(path)!r}: its weights hold pickled Python objects besides tensors, "
+                                      "which bh8-gym never unpickles (not even with --trust-file); not a model "
+                                      "bh8-gym saved") from None
             # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model);
             # AttributeError: a zip without its policy.pth
             except (AssertionError, AttributeError, KeyError, ValueError, TypeError, RuntimeError) as exc:
@@ -450,6 +579,7 @@ class SB3Policy:
         # An asymmetric model's actor takes host observations; its critic's extra inputs are not needed.
         self._predictor = HostObservationModel(self.model) if host_observations else self.model
         self.observation_dim = host_observations or int(np.prod(self.model.observation_space.shape or (0,)))
+        self.action_dim = int(np.prod(self.model.action_space.shape or (0,)))
 
     @property
     def privileged(self) -> bool:

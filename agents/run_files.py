@@ -40,35 +40,78 @@ def save_model_atomic(model, path: Path) -> None:
 
 
 def append_evaluation(out_dir: Path, row: dict) -> None:
-    """One row of `evaluations.csv` (EVALUATION_COLUMNS), the header first in a new file."""
+    """One row of `evaluations.csv` (EVALUATION_COLUMNS), the header first in a new file, on a line
+    of its own: after a row cut short (a kill or a full disk mid-append) it starts a new line, so
+    the two are not read as one."""
     path = Path(out_dir) / EVALUATIONS_FILE
-    new_file = not path.exists()
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
+    size = path.stat().st_size if path.exists() else 0
+    if size == 0:
+        writer.writeheader()
+    else:
+        with path.open("rb") as handle:
+            handle.seek(size - 1)
+            if handle.read(1) != b"\n":
+                text.write("\r\n")  # the csv module's line break
+    writer.writerow(row)
     with path.open("a", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=EVALUATION_COLUMNS)
-        if new_file:
-            writer.writeheader()
-        writer.writerow(row)
+        handle.write(text.getvalue())
 
 
-def read_evaluations(out_dir: Path) -> list[dict[str, float]]:
-    """The rows of `evaluations.csv` (the training curve) as floats."""
-    path = Path(out_dir) / EVALUATIONS_FILE
-    with path.open(newline="") as handle:
-        return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
+def read_evaluations(out_dir: Path, skipped: list[int] | None = None) -> list[dict[str, float]]:
+    """The complete rows of `evaluations.csv` (the training curve) as floats. A row cut short (the
+    file's last line without its line break, or a row with a field missing or not a number) is
+    left out, and its line number added to `skipped` when given, for the caller to report."""
+    rows, bad = _evaluation_rows(Path(out_dir) / EVALUATIONS_FILE)
+    if skipped is not None:
+        skipped += bad
+    return [{key: float(value) for key, value in row.items()} for row in rows]
 
 
-def drop_evaluations_after(out_dir: Path, timesteps: int) -> None:
+def _evaluation_rows(path: Path) -> tuple[list[dict[str, str]], list[int]]:
+    """The complete rows of the evaluations.csv `path` (as text) and the line numbers of the others."""
+    with path.open(newline="") as handle:  # the line breaks as written: a cut row has none
+        text = handle.read()
+    lines = text.splitlines()
+    cut_last = bool(text) and not text.endswith("\n")
+    if not lines or next(csv.reader([lines[0]])) != list(EVALUATION_COLUMNS) or (cut_last and len(lines) == 1):
+        return [], list(range(1, len(lines) + 1))  # no header: nothing can be read as a row
+    rows, bad = [], []
+    for number, line in enumerate(lines[1:], start=2):
+        fields = next(csv.reader([line]), [])
+        if _numbers(fields) and not (cut_last and number == len(lines)):
+            rows.append(dict(zip(EVALUATION_COLUMNS, fields)))
+        else:
+            bad.append(number)
+    return rows, bad
+
+
+def _numbers(fields: list[str]) -> bool:
+    """Whether `fields` are a row's worth of numbers."""
+    if len(fields) != len(EVALUATION_COLUMNS):
+        return False
+    try:
+        for value in fields:
+            float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def drop_evaluations_after(out_dir: Path, timesteps: int) -> list[int]:
     """Remove the `evaluations.csv` rows past `timesteps` (atomically): a run killed after its last
-    checkpoint made them, and the resumed run makes them again."""
+    checkpoint made them, and the resumed run makes them again. Rows cut short go too; their line
+    numbers are returned, for the caller to report."""
     path = Path(out_dir) / EVALUATIONS_FILE
     if not path.exists():
-        return
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
+        return []
+    rows, bad = _evaluation_rows(path)
     kept = [row for row in rows if float(row["timesteps"]) <= timesteps]
-    if len(kept) < len(rows):
+    if len(kept) < len(rows) or bad:
         text = io.StringIO(newline="")
         writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
         writer.writeheader()
         writer.writerows(kept)
         write_text_atomic(path, text.getvalue())
+    return bad

@@ -471,7 +471,10 @@ class Trainer:
         except OSError as error:
             raise TrainingError(f"cannot create the output directory {str(self.out_dir)!r}: {error.strerror}") from None
         if resume:
-            drop_evaluations_after(self.out_dir, state["num_timesteps"])
+            cut = drop_evaluations_after(self.out_dir, state["num_timesteps"])
+            if cut:  # rows a kill or a full disk cut short: dropped, not merged with the next
+                print(f"bh8 train: dropped the cut-short line(s) {', '.join(map(str, cut))} of evaluations.csv",
+                      file=sys.stderr)
             self._restore_best_model(state)
         else:
             write_json_atomic(self.out_dir / RUN_METADATA_FILE, self.run_metadata)

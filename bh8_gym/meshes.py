@@ -10,9 +10,12 @@ PyBullet can read it safely:
 - OBJ: lines of at most `OBJ_LINE_LIMIT` characters (the reader's buffer splits longer ones, which
   could smuggle a line past a check); `v x y z [...]` with finite numbers within float32; faces
   `f` of at least two vertices (two make no triangle and are skipped), each `i`, `i/j`, `i/j/k`
-  or `i//k`, whose vertex number `i` names a vertex defined above it (1..n, or -n..-1 counted back; 0 is no vertex). Texture and
-  normal numbers are bounds-checked by the reader itself and only need to be integers. Other
-  lines (`vn`, `vt`, `g`, `o`, `usemtl`, comments, ...) are left to it.
+  or `i//k`, whose vertex number `i` names a vertex defined above it (1..n, or -n..-1 counted
+  back; 0 is no vertex). The texture and normal numbers `j` and `k` must be written and not 0:
+  the reader bounds-checks them itself, but it refuses a 0 (`createCollisionShape failed`), and
+  it reads a missing one (`i/`, `i/j/`) as 0, or as the next entry's number when a space follows
+  (measured on pybullet 3.2.7). Other lines (`vn`, `vt`, `g`, `o`, `usemtl`, comments, ...) are
+  left to it.
 - STL: binary, `84 + 50 × n` bytes for its n ≥ 1 triangles, every vertex finite.
 - Either: a regular file of at most `MESH_FILE_LIMIT_BYTES`, with at least one face.
 
@@ -38,7 +41,8 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 # A C int's digits: the reader converts indices with atoi, which has no defined result past them.
 _INDEX_DIGITS = 9
 _FLOAT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_FACE_VERTEX = re.compile(r"(-?[0-9]+)(?:/(-?[0-9]*))?(?:/(-?[0-9]*))?")
+# i, i/j, i/j/k or i//k: the groups are i, then j of i/j, j and k of i/j/k, or k of i//k.
+_FACE_VERTEX = re.compile(r"(-?[0-9]+)(?:/(-?[0-9]+)|/(-?[0-9]+)/(-?[0-9]+)|//(-?[0-9]+))?")
 _SPACES = re.compile(r"[ \t]+")
 _STL_HEADER_BYTES = 84
 _STL_TRIANGLE = np.dtype([("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
@@ -66,23 +70,25 @@ def _checked_bounds(path: str, size: int, mtime_ns: int, inode: int) -> tuple[tu
     suffix = Path(path).suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise MeshError(f"mesh {path!r}: PyBullet builds collision shapes from {' and '.join(MESH_SUFFIXES)} files only")
-    data = _read_regular_file(path)
+    data = read_regular_file(path, MESH_FILE_LIMIT_BYTES, "mesh", MeshError)
     vertices = _obj_vertices(path, data) if suffix == ".obj" else _stl_vertices(path, data)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     return tuple(float(v) for v in low), tuple(float(v) for v in high)
 
 
-def _read_regular_file(path: str) -> bytes:
+def read_regular_file(path: str, limit: int, what: str, error_type: type[ValueError]) -> bytes:
+    """The bytes of `path`, a regular file of at most `limit` bytes (a FIFO or device is refused
+    unread), or an `error_type` naming it as `what` ("mesh", "URDF")."""
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block the open
-    except OSError as error:
-        raise MeshError(f"mesh {path!r} cannot be read: {error.strerror or error}") from None
+    except (OSError, ValueError) as error:  # ValueError: a NUL in the name
+        raise error_type(f"{what} {path!r} cannot be read: {getattr(error, 'strerror', None) or error}") from None
     with os.fdopen(fd, "rb") as handle:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise MeshError(f"mesh {path!r} is not a regular file")
-        data = handle.read(MESH_FILE_LIMIT_BYTES + 1)
-    if len(data) > MESH_FILE_LIMIT_BYTES:
-        raise MeshError(f"mesh {path!r} is larger than {MESH_FILE_LIMIT_BYTES >> 20} MB")
+            raise error_type(f"{what} {path!r} is not a regular file")
+        data = handle.read(limit + 1)
+    if len(data) > limit:
+        raise error_type(f"{what} {path!r} is larger than {limit >> 20} MB")
     return data
 
 
@@ -125,6 +131,9 @@ def _obj_face_vertex(path: str, number: int, field: str, defined: int) -> int:
     found = _FACE_VERTEX.fullmatch(field)
     if found is None or any(part and len(part.lstrip("-")) > _INDEX_DIGITS for part in found.groups()):
         raise MeshError(f"mesh {path!r} line {number}: {field!r:.40} is not a face vertex (i, i/j, i/j/k or i//k)")
+    if any(part is not None and int(part) == 0 for part in found.groups()[1:]):
+        raise MeshError(f"mesh {path!r} line {number}: face vertex {field!r:.40} has a texture or normal number "
+                        "of 0, which PyBullet refuses (they count from 1, or back from -1)")
     index = int(found.group(1))
     resolved = index - 1 if index > 0 else defined + index
     if index == 0 or not 0 <= resolved < defined:

@@ -23,8 +23,9 @@ Two string forms build an `ObjectSpec`:
   `PATH.urdf[:SCALE]` or `PATH.obj|stl:SCALE:MASS_KG[:FRICTION]`.
 
 Every object stays within our bounds (OBJECT_*, below), and every mesh is read by `bh8_gym.meshes`
-before PyBullet sees it (a bad face index crashes PyBullet's reader): a bad spec or file raises an
-`ObjectError` (a ValueError) naming it, before any physics runs.
+before PyBullet sees it (a bad face index crashes PyBullet's reader), a URDF's meshes found as
+PyBullet finds them (`bh8_gym.urdfs`): a bad spec or file raises an `ObjectError` (a ValueError)
+naming it, before any physics runs.
 
 Loading: `ObjectLoader` (the environments) caches collision and visual shapes by
 `ObjectSpec.shape_key`, so an object seen before costs one `createMultiBody` (about 0.2 ms) instead
@@ -40,7 +41,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -52,6 +52,7 @@ import pybullet as p
 
 from bh8_gym.meshes import MESH_SUFFIXES, MeshError, mesh_bounds
 from bh8_gym.plant import HandPlant, PlantError
+from bh8_gym.urdfs import UrdfError, urdf_mesh_files
 
 PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
 FILE_KINDS = ("urdf", "mesh")
@@ -246,24 +247,17 @@ def check_mesh_file(path, scale: float) -> None:
 
 
 def check_urdf_file(path) -> None:
-    """ObjectError unless each OBJ/STL mesh the URDF `path` names is one PyBullet reads safely
-    (`check_mesh_file`'s reader; its size is checked on the loaded body, `check_loaded_object`)."""
-    path = Path(path)
+    """ObjectError unless PyBullet reads the URDF `path` as `bh8_gym.urdfs` does and each OBJ/STL
+    mesh it opens for it is one PyBullet reads safely (`check_mesh_file`'s reader; its size is
+    checked on the loaded body, `check_loaded_object`). `path` is the string given to loadURDF:
+    PyBullet looks for the meshes from it."""
     try:
-        root = ElementTree.parse(path).getroot()
-    except (ElementTree.ParseError, OSError, ValueError):
-        return  # not XML: PyBullet's loader refuses it cleanly (file_errors_named)
-    for mesh in root.iter("mesh"):
-        name = mesh.get("filename") or ""
-        name = name.removeprefix("package://")
-        if Path(name).suffix.lower() not in MESH_SUFFIXES:
-            continue  # PyBullet's own readers (COLLADA visuals) or no file: nothing to check here
-        resolved = path.parent / name
-        if resolved.exists():  # a missing file is PyBullet's clean "cannot load"
-            try:
-                mesh_bounds(resolved)
-            except MeshError as error:
-                raise ObjectError(f"URDF {str(path)!r}: {error}") from None
+        for mesh in urdf_mesh_files(path):
+            mesh_bounds(mesh)
+    except UrdfError as error:
+        raise ObjectError(str(error)) from None
+    except MeshError as error:
+        raise ObjectError(f"URDF {str(path)!r}: {error}") from None
 
 
 def check_urdf_object(path, scale: float) -> None:

@@ -5,6 +5,7 @@ CI, in subprocess vector environments and on a laptop.
 """
 from __future__ import annotations
 
+import io
 import math
 import os
 import sys
@@ -150,20 +151,35 @@ def gif_durations(count: int, fps: float) -> list[int]:
     return durations
 
 
+def encode_gif(frames, fps: float = 20.0) -> bytes:
+    """Frames as the bytes of a GIF that plays in real time at `fps` (`gif_durations`)."""
+    import imageio.v2 as imageio
+
+    frames = _checked_frames(frames, fps)
+    buffer = io.BytesIO()
+    imageio.mimsave(buffer, frames, format="GIF", duration=gif_durations(len(frames), fps), loop=0)
+    return buffer.getvalue()
+
+
+def _checked_frames(frames, fps: float) -> list[np.ndarray]:
+    frames = [np.asarray(frame, dtype=np.uint8) for frame in frames]
+    if not frames:
+        raise ValueError("an animation needs at least one frame")
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    return frames
+
+
 def write_animation(frames, path, fps: float = 20.0) -> Path:
     """Write frames as a GIF (`.gif`) or MP4 (`.mp4`, needs the `video` extra: imageio-ffmpeg)."""
     import imageio.v2 as imageio
 
-    frames = [np.asarray(frame, dtype=np.uint8) for frame in frames]
-    if not frames:
-        raise ValueError("write_animation needs at least one frame")
-    if not (math.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be positive, got {fps!r}")
+    frames = _checked_frames(frames, fps)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix.lower()
     if suffix == ".gif":
-        imageio.mimsave(path, frames, format="GIF", duration=gif_durations(len(frames), fps), loop=0)
+        path.write_bytes(encode_gif(frames, fps))
     elif suffix == ".mp4":
         try:
             import imageio_ffmpeg  # noqa: F401  (only checks that the backend exists)

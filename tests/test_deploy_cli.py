@@ -3,12 +3,16 @@ and exit codes, a port that fails mid-run, and what the summary counts.
 """
 from __future__ import annotations
 
+import errno
 import json
+import os
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 import serial
 
@@ -21,10 +25,12 @@ class PolicyTriggeringAtCycle3:
     """An exported policy that sets `event` (a fault on the line) when asked for policy cycle 3's action."""
 
     def __init__(self, policy, event: threading.Event):
-        self.policy, self.event, self.calls = policy, event, 0
-        self.privileged, self.observation_dim = policy.privileged, policy.observation_dim
+        self.policy, self.event, self.calls, self.path = policy, event, 0, policy.path
+        self.privileged, self.observation_dim, self.action_dim = policy.privileged, policy.observation_dim, policy.action_dim
 
     def predict(self, observation, deterministic=True):
+        if np.ndim(observation) == 2:  # deploy's test of the policy before the port is opened, not a cycle
+            return self.policy.predict(observation, deterministic=deterministic)
         self.calls += 1
         if self.calls == 3:
             self.event.set()
@@ -385,3 +391,103 @@ def test_deploy_interface_is_the_env_interface():
         env.close()
     with pytest.raises(ValueError, match="unexpected keyword"):
         interface_for("BH8Grasp-v0", {"lcx": True})
+
+
+# -- a full disk under --log (issue 32, item 5) -----------------------------------------------
+
+_DEPLOY_RECORDING_THE_HAND = """
+import sys
+import bh8_gym.urlhandler
+import bh8_gym.agents.deploy as deploy
+from bh8_gym.cli import main
+
+command, set_baud = deploy.BarrettHand.command, deploy.BarrettHand.set_baud
+def recorded_command(self, line, *args, **kwargs):
+    print("hand: " + line, file=sys.stderr, flush=True)
+    return command(self, line, *args, **kwargs)
+def recorded_set_baud(self, rate):
+    print(f"hand: baud {rate}", file=sys.stderr, flush=True)
+    return set_baud(self, rate)
+deploy.BarrettHand.command, deploy.BarrettHand.set_baud = recorded_command, recorded_set_baud
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/dev/full and RLIMIT_FSIZE")
+@pytest.mark.parametrize("room", ["none", 3000, 4600])
+def test_a_full_disk_under_the_log_never_stops_the_safe_exit(reach_policy_npz, tmp_path, room):
+    """On a full filesystem `bh8 deploy --log` died of a raw OSError: GT never sent, the baud not
+    switched back, the log cut mid-record. Here the log is /dev/full (no room from the start:
+    ENOSPC) or the kernel refuses it past `room` bytes (RLIMIT_FSIZE: the write that crosses it
+    is cut short and the next fails, as on a full disk), mid-run or at the last records of a
+    4.7 KB log (the simulated hand's 2.2 KB store fits). The run stops at the next cycle boundary
+    (exit 3, also when only the last records failed); the hand still gets the zero block, ^C, GT
+    and its rate back; the log holds whole records only; the summary and the log's failure are one
+    line each."""
+    import resource
+
+    log = Path("/dev/full") if room == "none" else tmp_path / "deploy.jsonl"
+
+    def limit_file_size():
+        if room != "none":
+            resource.setrlimit(resource.RLIMIT_FSIZE, (room, resource.RLIM_INFINITY))
+
+    result = subprocess.run(
+        [sys.executable, "-c", _DEPLOY_RECORDING_THE_HAND, "deploy", "--port", "bh8sim://?seed=0", "--policy",
+         str(reach_policy_npz), "--log", str(log), "--cycles", "40", "--clock", "cycles"],
+        capture_output=True, text=True, timeout=300, preexec_fn=limit_file_size)
+    assert result.returncode == 3, result.stderr[-2000:]
+    hand = [line.removeprefix("hand: ") for line in result.stderr.splitlines() if line.startswith("hand: ")]
+    assert hand[0] == "baud 38400" and "HI" in hand and hand[-2:] == ["GT", "baud 9600"]
+    reason = "No space left on device" if room == "none" else "File too large"
+    if room == 4600:  # the log failed after the last cycle, leaving LOOP: the cycles all ran
+        assert f"40 policy cycles, stopped: done; log in {log}" in result.stdout
+    else:
+        assert f"stopped: the log cannot be written ({reason}); log in {log}" in result.stdout
+    assert f"bh8 deploy: the log {str(log)!r} stopped at a record it could not write" in result.stderr
+    assert "Traceback" not in result.stderr
+    if room != "none":
+        text = log.read_text()
+        assert 0 < len(text) <= room and text.endswith("\n")
+        records = [json.loads(line) for line in text.splitlines()]  # whole records only
+        assert records[0]["event"] == "baud" and "stop" not in [record.get("event") for record in records]
+
+
+class _FillingDisk:
+    """A raw file that takes `room` more bytes, the last write cut short, then fails with ENOSPC."""
+
+    def __init__(self, file, room: int):
+        self.file, self.room = file, room
+
+    def write(self, data: bytes) -> int:
+        if self.room <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        written = self.file.write(data[:self.room])
+        self.room -= written
+        return written
+
+    def __getattr__(self, name):
+        return getattr(self.file, name)
+
+
+def test_the_log_keeps_whole_records_when_the_disk_fills(tmp_path):
+    """`RecordLog`: a record the disk takes only part of is cut back off the file and its write
+    raises ENOSPC; every later record raises too, and the file holds the whole records before it."""
+    from bh8_gym.agents.deploy import RecordLog
+
+    path = tmp_path / "log.jsonl"
+    records = [{"cycle": index, "control": "43" + "00" * 8} for index in range(20)]
+    with RecordLog(path) as log:
+        log._file = _FillingDisk(log._file, room=300)
+        written = []
+        for record in records:
+            try:
+                log.write(json.dumps(record) + "\n")
+            except OSError as error:
+                assert error.errno == errno.ENOSPC
+                break
+            written.append(record)
+        with pytest.raises(OSError):
+            log.write(json.dumps(records[-1]) + "\n")
+    assert 0 < len(written) < len(records)
+    assert [json.loads(line) for line in path.read_text().splitlines()] == written

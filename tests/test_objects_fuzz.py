@@ -109,7 +109,8 @@ def test_any_object_spec_of_the_envs_is_refused_or_loads_finitely(loader_client,
 # OBJ lines as an exporter, a clumsy user and an attacker write them.
 index_tokens = st.one_of(
     st.integers(-12, 12).map(str),
-    st.sampled_from(["999999", "99999999999999", "-2147483649", "a", "", "1/2/3", "2//1", "3/1", "1/", "/1", "1/2/3/4"]),
+    st.sampled_from(["999999", "99999999999999", "-2147483649", "a", "", "1/2/3", "2//1", "3/1", "1/", "/1", "1/2/3/4",
+                     "1/0", "3//0", "3/0/1", "3/1/0", "1/2/", "2//", "1/-0", "1/00"]),
     st.tuples(st.integers(-6, 6), st.integers(-6, 6)).map(lambda t: f"{t[0]}/{t[1]}"),
 )
 coordinate_tokens = st.one_of(
@@ -164,6 +165,34 @@ def _loads_in_a_child(path: str) -> int:
         os._exit(code)
     _, status = os.waitpid(pid, 0)
     return status
+
+
+TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\n"
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="forks a child for PyBullet")
+@pytest.mark.parametrize("face, refused", [
+    ("f 1 1 1/0", True), ("f 3//0 1 2", True), ("f 3/0/1 1 2", True), ("f 3/1/0 1 2", True), ("f 1 2 3/", True),
+    ("f 1 2 3/1/", True), ("f 1/-0 2 3", True),
+    ("f 1/1 2/1 3/1", False), ("f 1/1/1 2/1/1 3/1/1", False), ("f 1//1 2//1 3//1", False), ("f 1/-1 2 3", False),
+    ("f 1/99 2 3", False), ("f 1//-7 2 3", False),
+])
+def test_texture_and_normal_numbers_are_read_as_pybullet_reads_them(tmp_path, face, refused):
+    """Issue 31: a texture or normal number of 0, or a missing one at the end of a line (read as
+    0), passed the reader and then PyBullet's createCollisionShape failed (1 fuzz run in 5). Its
+    reader refuses a 0 but bounds-checks other numbers itself (any non-zero one loads); the
+    validating reader now refuses exactly those, naming why. PyBullet's own verdict is checked in
+    a child process, so the test follows the installed PyBullet."""
+    path = tmp_path / "face.obj"
+    path.write_text(TRIANGLE + face + "\n")
+    status = _loads_in_a_child(str(path))
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == (3 if refused else 0)  # 3: pybullet.error
+    if refused:
+        with pytest.raises(MeshError, match=r"line 6: .*(texture or normal number of 0|is not a face vertex)"):
+            mesh_bounds(path)
+    else:
+        low, high = mesh_bounds(path)
+        assert list(high - low) == [1.0, 1.0, 0.0]
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="forks a child for PyBullet")

@@ -207,14 +207,54 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz
     assert not log.exists()  # refused before anything was sent: the last run's log is left alone
 
 
+@pytest.mark.parametrize("case, message", [
+    ("one action too few", "the policy gives 3 actions but the env's control block has 4 fields (LCV 1, LCV 2, "
+                           "LCV 3, LCV 4)"),
+    ("NaN for every input", "gives a non-finite action"),
+])
+def test_a_policy_that_cannot_act_on_the_env_is_refused_before_the_port_opens(reach_policy_npz, tmp_path, capsys,
+                                                                              monkeypatch, case, message):
+    """Issue 32 item 3: an .npz with an action output too few passed the load checks (its layers
+    chain) and a policy whose weights overflow to NaN for every input (weights ±1e300, obs_clip inf,
+    every number finite) did too: deploy sent BAUD, HI, the LOOP setup and LOOP, then died at cycle
+    0 or stopped there. Now the action size is checked against the env's control block and one
+    forward pass on test observations must give finite actions of the env's shape: exit 2 before
+    the port is opened."""
+    import bh8_gym.agents.deploy
+
+    with np.load(reach_policy_npz, allow_pickle=False) as data:
+        w0, w1, b1 = data["layer0_weight"], data["layer1_weight"], data["layer1_bias"]
+    bad = {
+        "one action too few": dict(layer1_weight=w1[:3], layer1_bias=b1[:3], action_low=-np.ones(3),
+                                   action_high=np.ones(3)),
+        "NaN for every input": dict(layer0_weight=np.where(np.indices(w0.shape).sum(axis=0) % 2, 1e300, -1e300),
+                                    obs_mean=np.full(w0.shape[1], -1e300), obs_clip=np.array(np.inf)),
+    }[case]
+    path = _damaged(reach_policy_npz, tmp_path, **bad)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("deploy opened the port for a policy that cannot act")
+
+    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    log = tmp_path / "deploy.jsonl"
+    capsys.readouterr()
+    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bh8 deploy: ") and message in err and len(err.strip().splitlines()) == 1, err
+    assert not log.exists()
+
+
 class _FailingAtCycle:
     """An exported policy whose prediction raises at policy cycle `cycle` (as a mismatched layer would)."""
 
     def __init__(self, policy, cycle: int):
-        self.policy, self.cycle, self.calls = policy, cycle, 0
+        self.policy, self.cycle, self.calls, self.path = policy, cycle, 0, policy.path
         self.privileged, self.observation_dim, self.metadata = policy.privileged, policy.observation_dim, policy.metadata
+        self.action_dim = policy.action_dim
 
     def predict(self, observation, deterministic=True):
+        if np.ndim(observation) == 2:  # deploy's test of the policy before the port is opened, not a cycle
+            return self.policy.predict(observation, deterministic=deterministic)
         self.calls += 1
         if self.calls == self.cycle:
             raise ValueError("matmul: Input operand 1 has a mismatch in its core dimension 0")
@@ -241,3 +281,168 @@ def test_a_policy_failing_mid_run_is_a_stop_with_its_record_and_exit_2(reach_pol
     assert [r["line"] for r in records if r.get("event") == "command"][-1] == "GT"  # the exit action ran
     stop_block = [r for r in records if "cycle" in r][-1]
     assert stop_block["control"][2:] == "00" * (len(stop_block["control"]) // 2 - 1)  # zero velocity, gain 0
+
+
+# -- files that ask for more than they hold (issue 32, items 4 and 10) ------------------------
+
+
+def _model_copy(sb3_run, tmp_path, data: dict | None = None, members: dict | None = None):
+    """A copy of the run whose model's `data` JSON gets `data`'s entries and whose zip gets `members`."""
+    folder = tmp_path / "edited"
+    shutil.copytree(sb3_run, folder)
+    path = folder / "model.zip"
+    with zipfile.ZipFile(path) as archive:
+        contents = {name: archive.read(name) for name in archive.namelist()}
+    contents["data"] = json.dumps({**json.loads(contents["data"]), **(data or {})}).encode()
+    contents.update(members or {})
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, content in contents.items():
+            archive.writestr(name, content)
+    return path
+
+
+class _RunsOnUnpickling:
+    def __reduce__(self):
+        return os.system, ("echo ran",)
+
+
+def _weights_with_a_pickle() -> bytes:
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save({"payload": _RunsOnUnpickling(), "padding": torch.zeros(10_000)}, buffer)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("net_arch [12000, 12000]", "net_arch must list at most 64 layer widths from 1 to 4096, got [12000, 12000]"),
+    ("net_arch wider than its weights", "its net_arch makes a network of 32172005 parameters, but the file stores"),
+    ("net_arch of 100 layers", "net_arch must list at most 64 layer widths"),
+    ("a width of 0", "net_arch must list at most 64 layer widths from 1 to 4096, got [0]"),
+    ("n_steps 1e12", "n_steps must be a whole number from 1 to 268435456, got 1000000000000"),
+    ("n_envs 1e9 with n_steps 64", "n_envs must be a whole number from 1 to 268435456, got 1000000000"),
+    ("a rollout of 2**27 transitions", "its rollout buffer would hold 134217728 transitions of 21 numbers"),
+    ("an observation of 10**9 entries", "observation_space must have a shape of at most 65536 entries"),
+    ("data nested 100k deep", "cannot read SB3 model"),
+    ("weights holding a pickle", "its weights hold pickled Python objects besides tensors, which bh8-gym never "
+                                 "unpickles (not even with --trust-file)"),
+])
+@pytest.mark.parametrize("trust", [False, True])
+def test_a_policy_zip_that_asks_for_more_than_it_holds_is_refused_at_once(sb3_run, tmp_path, capsys, case, message,
+                                                                         trust):
+    """Item 4: a 20 KB zip whose JSON asks for net_arch [12000, 12000] kept `bh8 eval` building a
+    network for minutes at 3.1 GB; n_steps 1e12 made SB3 allocate its rollout buffer (a raw
+    allocation traceback). The sizes are bounded before SB3 builds anything, and the parameters
+    must fit in the weights the file stores. Item 10: torch's refusal of a pickle among the
+    weights advised `weights_only=False` (which would run it). Each is one line, exit 2, quickly,
+    with --trust-file as without (trusting a file does not make it fit in memory)."""
+    import time
+
+    edits = {
+        "net_arch [12000, 12000]": dict(data={"policy_kwargs": {"net_arch": [12000, 12000]}}),
+        "net_arch wider than its weights": dict(data={"policy_kwargs": {"net_arch": [4000, 4000]}}),
+        "net_arch of 100 layers": dict(data={"policy_kwargs": {"net_arch": [8] * 100}}),
+        "a width of 0": dict(data={"policy_kwargs": {"net_arch": {"pi": [0]}}}),
+        "n_steps 1e12": dict(data={"n_steps": 10**12}),
+        "n_envs 1e9 with n_steps 64": dict(data={"n_envs": 10**9}),
+        "a rollout of 2**27 transitions": dict(data={"n_steps": 2**27}),
+        "an observation of 10**9 entries": dict(data={"observation_space": {"_shape": [10**9]}}),
+        "data nested 100k deep": dict(data={"deep": "<placeholder>"}),
+        "weights holding a pickle": dict(members={"policy.pth": _weights_with_a_pickle()}),
+    }[case]
+    path = _model_copy(sb3_run, tmp_path, **edits)
+    if case == "data nested 100k deep":
+        with zipfile.ZipFile(path) as archive:
+            contents = {name: archive.read(name) for name in archive.namelist()}
+        contents["data"] = contents["data"].replace(b'"<placeholder>"', b"[" * 100_000 + b"]" * 100_000)
+        with zipfile.ZipFile(path, "w") as archive:
+            for name, content in contents.items():
+                archive.writestr(name, content)
+    started = time.monotonic()
+    code = main(["eval", str(path), "--episodes", "1", "--no-progress", "--gif-episodes", "0",
+                 *(["--trust-file"] if trust else [])])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("bh8 eval: ") and message in err, err
+    assert "\n" not in err and "weights_only" not in err
+    assert time.monotonic() - started < 30.0
+
+
+def test_a_sac_zip_asking_for_a_huge_replay_buffer_is_refused(tmp_path, capsys):
+    """SAC builds its replay buffer of buffer_size transitions when it loads a model: 10^12 was an
+    allocation traceback."""
+    from stable_baselines3 import SAC
+
+    from bh8_gym.agents.env_factory import make_env
+
+    env = make_env(REACH, {})
+    try:
+        model = SAC("MlpPolicy", env, seed=0, device="cpu", buffer_size=100, policy_kwargs={"net_arch": [16]})
+    finally:
+        env.close()
+    folder = tmp_path / "run"
+    folder.mkdir()
+    model.save(folder / "model.zip")
+    (folder / "run.json").write_text(json.dumps({"env_id": REACH, "env_kwargs": {}, "algorithm": "SAC"}))
+    path = _model_copy(folder, tmp_path, data={"buffer_size": 10**12})
+    assert main(["eval", str(path), "--episodes", "1", "--no-progress", "--gif-episodes", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "buffer_size must be a whole number from 1 to 268435456, got 1000000000000" in err and "\n" not in err
+
+
+def _npz_with_member(exported, tmp_path, name: str, member: bytes, extra: int = 0):
+    """A copy of an export whose member `name` is replaced by raw .npy bytes, plus `extra` tiny members."""
+    with zipfile.ZipFile(exported) as archive:
+        contents = {item: archive.read(item) for item in archive.namelist()}
+    contents[name] = member
+    for index in range(extra):
+        contents[f"extra{index}.npy"] = contents["obs_clip.npy"]
+    path = tmp_path / "edited.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        for item, content in contents.items():
+            archive.writestr(item, content)
+    return path
+
+
+@pytest.mark.parametrize("case, message", [
+    ("metadata nested 100k deep", "its metadata is nested too deep"),
+    ("a header declaring 10**12 floats", "'obs_mean.npy' declares 8000000000000 bytes of data but holds"),
+    ("a header declaring fewer floats", "'obs_mean.npy' declares 8 bytes of data but holds"),
+    ("thousands of members", "holds 3012 arrays, more than an export's 144"),
+])
+@pytest.mark.parametrize("command", ["deploy", "eval"])
+def test_an_npz_that_asks_for_more_than_it_holds_is_one_line_exit_2(reach_policy_npz, tmp_path, capsys, monkeypatch,
+                                                                     case, message, command):
+    """Item 10: metadata JSON nested 100k deep was a RecursionError, and a member whose .npy header
+    declares 10^12 floats made numpy allocate them before reading (an allocation error): raw
+    tracebacks. The .npy headers are read first and must declare what each member holds; exit 2
+    with one line, and deploy never opens the port."""
+    import io
+
+    import bh8_gym.agents.deploy
+
+    def header(shape) -> bytes:
+        buffer = io.BytesIO()
+        np.lib.format.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False, "shape": shape})
+        return buffer.getvalue()
+
+    with np.load(reach_policy_npz, allow_pickle=False) as data:
+        size = data["obs_mean"].size
+    if case == "metadata nested 100k deep":
+        path = _damaged(reach_policy_npz, tmp_path, metadata=np.array("[" * 100_000 + "]" * 100_000))
+    elif case == "thousands of members":
+        path = _npz_with_member(reach_policy_npz, tmp_path, "obs_clip.npy", header(()) + bytes(8), extra=3000)
+    else:
+        shape = (10**12,) if case == "a header declaring 10**12 floats" else (1,)
+        path = _npz_with_member(reach_policy_npz, tmp_path, "obs_mean.npy", header(shape) + bytes(8 * size))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("deploy opened the port for a damaged policy")
+
+    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    argv = {"deploy": ["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(tmp_path / "log")],
+            "eval": ["eval", str(path), "--episodes", "1", "--no-progress", "--gif-episodes", "0"]}[command]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"bh8 {command}: ") and message in err and "\n" not in err, err

@@ -3,6 +3,8 @@ approach from the pose the object lies in, so the scene must not set a mesh down
 falls out of."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pybullet
 import pytest
@@ -57,3 +59,36 @@ def test_a_flat_lying_model_is_scaled_to_the_reachable_height():
     spec = random_urdf_spec("015", np.random.default_rng(0))
     height = resting_pose(spec).extents[2] * spec.scale
     assert height > 0.03
+
+
+
+def _box_obj(low, high) -> str:
+    """A box from corner `low` to corner `high` (its mass centre is the file's origin)."""
+    corners = [(x, y, z) for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])]
+    faces = ["1 2 4 3", "5 7 8 6", "1 5 6 2", "3 4 8 7", "1 3 7 5", "2 6 8 4"]
+    return "".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "".join(f"f {face}\n" for face in faces)
+
+
+def test_the_resting_pose_follows_the_files_content_not_its_path(tmp_path):
+    """Issue 32 item 12: the cache was keyed by path, so a mesh file rewritten in place kept the
+    pose and extents of what it used to hold. Keyed by content, the new content is settled. A tall
+    box centred on its origin stands; the same box beside its origin (its mass centre outside its
+    footprint) falls on its side. Both are settled at the same size, so a shape cached by path and
+    scale would be stale as well; the old content is still remembered."""
+    standing = _box_obj((-0.01, -0.015, 0.0), (0.01, 0.015, 0.08))
+    falling = _box_obj((0.01, -0.015, 0.0), (0.03, 0.015, 0.08))
+    reference = tmp_path / "falling.obj"
+    reference.write_text(falling)
+    expected = resting_pose(ObjectSpec(kind="mesh", path=str(reference), scale=1.0, mass=0.1))
+    part = tmp_path / "part.obj"
+    part.write_text(standing)
+    spec = ObjectSpec(kind="mesh", path=str(part), scale=1.0, mass=0.1)
+    stands = resting_pose(spec)
+    assert stands.extents[2] > 0.08 and expected.extents[2] < 0.05  # the two rest differently
+    stat = part.stat()
+    part.write_text(falling.replace("\nf", "\n# rewritten\nf", 1))  # new bytes, the falling box's shape
+    os.utime(part, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # the same time, too
+    assert resting_pose(spec).orientation == expected.orientation
+    np.testing.assert_allclose(resting_pose(spec).extents, expected.extents)
+    part.write_text(standing)
+    assert resting_pose(spec) is stands

@@ -6,21 +6,23 @@ validation models tip over by more than 10° within a second (a plate on its edg
 point), so a palm height planned from the loaded pose met an object that had fallen away from the
 fingers. `resting_pose(spec)` drops the mesh once (at a fixed size: the pose it settles into
 does not depend on its scale) on a plane in a private PyBullet world and returns the orientation it
-comes to rest in and its extents lying so (cached per mesh file: the same mesh always rests the
-same way on one machine). Set down so, 4 of the 100 validation models still tilt more than 10° in
-a second (a marginal facet at their own size and friction), against 56 as loaded. Primitives are
-made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
+comes to rest in and its extents lying so (cached by the file's content, a SHA-256 of its bytes:
+the same mesh always rests the same way on one machine, and a file rewritten in place is settled
+again; the scale it is settled at follows from those bytes). Set down so, 4 of the 100
+validation models still tilt more than 10° in a second (a marginal facet at their own size and
+friction), against 56 as loaded. Primitives are made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
 their orientation.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
 import pybullet
 
-from bh8_gym.meshes import mesh_bounds
+from bh8_gym.meshes import MESH_FILE_LIMIT_BYTES, MeshError, mesh_bounds, read_regular_file
 from bh8_gym.objects import ObjectLoader, ObjectSpec
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -38,7 +40,7 @@ class RestingPose(NamedTuple):
     extents: np.ndarray | None  # the axis-aligned extents lying so, in the file's units (meshes)
 
 
-_poses: dict[str, RestingPose] = {}
+_poses: dict[bytes, RestingPose] = {}  # by the SHA-256 of the mesh file's bytes
 _world: dict[str, object] = {}
 
 
@@ -46,12 +48,13 @@ def resting_pose(spec: ObjectSpec) -> RestingPose:
     """How `spec` lies on a table once set down from its loaded orientation (primitives: as made)."""
     if spec.kind != "mesh":
         return RestingPose(IDENTITY, None)
-    if spec.path not in _poses:
+    key = hashlib.sha256(read_regular_file(spec.path, MESH_FILE_LIMIT_BYTES, "mesh", MeshError)).digest()
+    if key not in _poses:
         low, high = mesh_bounds(spec.path)
         scale = SETTLED_SIZE / float(np.max(high - low))
         orientation, extents = _settle(replace(spec, scale=scale, mass=0.1))
-        _poses[spec.path] = RestingPose(orientation, extents / scale)
-    return _poses[spec.path]
+        _poses[key] = RestingPose(orientation, extents / scale)
+    return _poses[key]
 
 
 def resting_orientation(spec: ObjectSpec) -> tuple[float, float, float, float]:
@@ -59,22 +62,28 @@ def resting_orientation(spec: ObjectSpec) -> tuple[float, float, float, float]:
     return resting_pose(spec).orientation
 
 
-def _private_world():
-    if _world.get("loader") is None or _world["loader"].shapes_created >= WORLD_SHAPES:
+def _private_world() -> int:
+    if _world.get("client") is None or _world["shapes"] >= WORLD_SHAPES:
         if _world.get("client") is not None:
             pybullet.disconnect(physicsClientId=_world["client"])
         client = pybullet.connect(pybullet.DIRECT)
+        # PyBullet keeps a mesh file's contents by its name: a file rewritten in place must be read again.
+        pybullet.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=client)
         pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
         pybullet.setTimeStep(SETTLE_STEP, physicsClientId=client)
         plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
         pybullet.createMultiBody(0.0, plane, physicsClientId=client)
-        _world.update(client=client, loader=ObjectLoader(client, visuals=False))
-    return _world["client"], _world["loader"]
+        _world.update(client=client, shapes=0)
+    return _world["client"]
 
 
 def _settle(spec: ObjectSpec) -> tuple[tuple[float, float, float, float], np.ndarray]:
-    client, loader = _private_world()
+    client = _private_world()
+    # A loader of its own each time: a loader's shape cache is keyed by path, and a file rewritten
+    # in place must be read again.
+    loader = ObjectLoader(client, visuals=False)
     body = loader.create(spec, (0.0, 0.0, 1.0), IDENTITY)
+    _world["shapes"] += loader.shapes_created
     try:
         low, _ = pybullet.getAABB(body, -1, physicsClientId=client)
         pybullet.resetBasePositionAndOrientation(body, (0.0, 0.0, 1.0 - low[2] + 1e-4), IDENTITY,
