@@ -26,6 +26,9 @@ ALGORITHMS = ("PPO", "SAC")
 # torch.nn class of each `activation` name in [policy_kwargs]
 ACTIVATION_CLASSES = {"tanh": "Tanh", "relu": "ReLU", "elu": "ELU", "leaky_relu": "LeakyReLU", "silu": "SiLU"}
 MAX_DEPTH = 16  # tables and lists inside each other (TOML's dotted headers can nest thousands deep)
+# A config file is a few KB; past this it is refused unread (tomllib takes cubic time over nested
+# dotted headers: 1000 of them, 1 MB, parse in seconds).
+MAX_CONFIG_BYTES = 1 << 20
 MAX_TIMESTEPS = 10**10  # about four months of env steps at 1000 a second
 MAX_ENVS = 256
 MAX_EPISODES = 10**6

@@ -41,6 +41,7 @@ from typing import Any
 from bh8_gym.agents.config_check import (
     ACTIVATION_CLASSES,
     ALGORITHMS,
+    MAX_CONFIG_BYTES,
     MAX_ENVS,
     MAX_TIMESTEPS,
     check_config,
@@ -112,7 +113,10 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     try:
         with path.open("rb") as handle:
-            config = tomllib.load(handle)
+            text = handle.read(MAX_CONFIG_BYTES + 1)
+        if len(text) > MAX_CONFIG_BYTES:
+            raise TrainingError(f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES >> 20} MB: not a config")
+        config = tomllib.loads(text.decode())
     except FileNotFoundError:
         raise TrainingError(f"config file {str(path)!r} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
