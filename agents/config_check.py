@@ -368,7 +368,8 @@ def _check_table(config: dict, table: str, keys: dict, what: str) -> None:
         raise ConfigError(f"[{table}] must be a table, got {shown(values)}")
     for key, value in values.items():
         if key not in keys:
-            raise ConfigError(f"[{table}] has no key {key!r} {what} (known: {', '.join(sorted(keys))})")
+            raise ConfigError(f"[{table}] has no key {key!r}{' ' + what if what else ''} "
+                              f"(known: {', '.join(sorted(keys))})")
         _check_value(f"[{table}]", key, keys[key], value)
 
 
