@@ -16,8 +16,10 @@ Output directory layout (`--out DIR`):
 
 `--resume` continues an interrupted run from checkpoints/latest.*: model weights and optimiser,
 SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
-and seed in run.json; nothing in the checkpoint is unpickled (agents/checkpoint_file.py) (an --algo, --env, --config or --seed that contradicts them is an error;
+and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
 --timesteps may extend the run; without it the run trains to the total it was started with).
+Nothing in the run directory is unpickled (agents/checkpoint_file.py; an earlier version's pickled
+SAC replay buffer only with --trust-file).
 Evaluations made after the checkpoint are undone (their evaluations.csv rows, and a best_model.zip
 they wrote: the checkpoint's best model is put back).
 
