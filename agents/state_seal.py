@@ -19,6 +19,7 @@ import hmac
 import json
 import os
 import secrets
+import stat
 from pathlib import Path
 
 KEY_BYTES = 32
@@ -54,18 +55,25 @@ def _key() -> bytes:
     return key
 
 
+NOT_A_FILE = "not a regular file"
+
+
 def _digests(folder: Path, skip: tuple[str, ...]) -> dict[str, str]:
     """SHA-256 of every file under `folder` (relative POSIX paths), except the top-level entries in
-    `skip`. Symbolic links count as the files they point to, as a loader would read them."""
+    `skip`. A symbolic link or a device is not read (it could point anywhere, or never end): it gets
+    NOT_A_FILE, which no state bh8 sweep seals holds, so a check finds it changed."""
     digests = {}
     for root, directories, files in os.walk(folder):
         relative_root = Path(root).relative_to(folder)
         if relative_root == Path("."):
             directories[:] = [name for name in directories if name not in skip]
             files = [name for name in files if name not in skip]
-        for name in files:
+        for name in [*files, *(d for d in directories if (Path(root) / d).is_symlink())]:
             path = Path(root) / name
             digest = hashlib.sha256()
+            if not stat.S_ISREG(os.lstat(path).st_mode):
+                digests[(relative_root / name).as_posix()] = NOT_A_FILE
+                continue
             with open(path, "rb") as handle:
                 for block in iter(lambda: handle.read(1 << 20), b""):
                     digest.update(block)
@@ -104,7 +112,7 @@ def check_sealed(folder: Path, seal_file: Path, skip: tuple[str, ...] = ()) -> N
     if not hmac.compare_digest(mac, _mac(_key(), digests)):
         raise SealError(f"its seal {str(seal_file)!r} was not made by this account's bh8 (or was changed)")
     current = _digests(Path(folder), skip)
-    changed = sorted(name for name, digest in current.items() if digests.get(name) != digest)
+    changed = sorted(name for name, digest in current.items() if digest == NOT_A_FILE or digests.get(name) != digest)
     if changed:
         shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
         raise SealError(f"{shown} changed or appeared after it was sealed")
