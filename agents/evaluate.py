@@ -35,6 +35,7 @@ from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_scri
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
 from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
+from bh8_gym.agents.config_check import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
@@ -388,7 +389,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="evaluate a scripted baseline: supervisory, loop, squeeze, or any script of the "
                              "ceiling family (agents/ceiling.py: " + ", ".join(FAMILY) + ")")
     parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
-    parser.add_argument("--episodes", type=int, default=50, help="episodes (default: %(default)s)")
+    parser.add_argument("--episodes", type=integer_argument(1, MAX_EPISODES), default=50,
+                        help="episodes per object set (default: %(default)s)")
     parser.add_argument("--objects", default=DEFAULT_EVALUATION_SETS,
                         help="object sets, comma-separated, --episodes each: test, validation, train (random_urdfs), "
                              "primitives-test, primitives-validation, primitives-train, mixed-test, mixed-validation, "
@@ -396,7 +398,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--object-files", nargs="+", default=None, metavar="FILE",
                         help="your own objects: PATH.urdf[:SCALE] or PATH.obj:SCALE:MASS_KG[:FRICTION] "
                              "(default: none, the --objects set)")
-    parser.add_argument("--seed", type=integer_argument(0), default=100_000, help="seed of the first episode (default: %(default)s)")
+    parser.add_argument("--seed", type=integer_argument(0, MAX_SEED), default=100_000,
+                        help="seed of the first episode (default: %(default)s)")
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation on (default: off)")
     parser.add_argument("--env-kwargs", type=json_object_argument, default={}, metavar="JSON",
                         help='env keywords on top of the policy\'s, e.g. \'{"plant_parameters": {"solver_iterations": 200}}\' '
@@ -405,7 +408,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     add_trust_argument(parser)
     parser.add_argument("--curve", type=Path, default=None,
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
-    parser.add_argument("--gif-episodes", type=int, default=2,
+    parser.add_argument("--gif-episodes", type=integer_argument(0, 100), default=2,
                         help="episodes rendered to the GIF in --out (0: none; default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (as `bh8 train --no-progress`; none is drawn off a terminal anyway)")

@@ -15,6 +15,7 @@ import numpy as np
 
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, SB3Policy, add_trust_argument, export_sb3_policy
+from bh8_gym.cli import float_argument, integer_argument
 
 # float32 torch against float64 numpy on a few-layer MLP: differences are ~1e-6; 1e-4 leaves margin
 DEFAULT_TOLERANCE = 1e-4
@@ -58,9 +59,9 @@ def check_run_metadata(sb3_policy, model_path: Path) -> None:
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="trained SB3 model (.zip), e.g. RUN/best_model.zip")
     parser.add_argument("-o", "--out", type=Path, default=None, help="output .npz (default: MODEL with .npz)")
-    parser.add_argument("--check", type=int, default=256,
+    parser.add_argument("--check", type=integer_argument(0, 10**6), default=256,
                         help="random observations on which numpy and SB3 actions are compared (0: skip; default %(default)s)")
-    parser.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE,
+    parser.add_argument("--tolerance", type=float_argument(0.0, 1e6), default=DEFAULT_TOLERANCE,
                         help="largest accepted |SB3 - numpy| action difference (default %(default)s)")
     add_trust_argument(parser)
 

@@ -5,6 +5,9 @@ Each trial is a `bh8 train` run (agents/sweep_trial.py) with its own run directo
 directory (`--out`) holds:
 
     sweep.json              the sweep's fixed settings (config, seeds, space, resources): --resume reads them
+                            (agents/sweep_settings.py)
+    ray_state.seal.json     the seal on Ray Tune's pickled state, made when the sweep stops: --resume
+                            restores that state only under it, or with --trust-file (agents/state_seal.py)
     sweep.md                every trial (config, seed, best validation success with its 95 % CI, steps,
                             wall time, attempts, status), the spread over seeds, the test evaluation
     validation_curves.png   all trials' validation curves, their median and range
@@ -19,45 +22,33 @@ stopped with unfinished trials (Ctrl-C) exits 130 and `bh8 sweep --resume DIR` c
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
-from bh8_gym.agents.sweep_space import (
-    SweepConfigError,
-    check_sweep,
-    count_trials,
-    parse_seeds,
-    read_sweep_table,
-    tune_domains,
+from bh8_gym.agents.config_check import MAX_ENVS, MAX_EPISODES, MAX_SEED, MAX_TIMESTEPS
+from bh8_gym.agents.sweep_cluster import (
+    CONNECT_TIMEOUT_S,
+    MAX_CPUS,
+    address_argument,
+    check_reachable,
+    resources_argument,
+    start_ray,
 )
+from bh8_gym.agents.sweep_settings import (
+    MAX_FAILURES,
+    SETTINGS_FILE,
+    new_settings,
+    resumed_settings,
+    write_settings,
+)
+from bh8_gym.agents.sweep_space import MAX_SAMPLES, MAX_TRIALS, SweepConfigError, count_trials, tune_domains
 from bh8_gym.cli import integer_argument
 
-SETTINGS_FILE = "sweep.json"
 INSTALL_HINT = ('bh8 sweep runs its trials on Ray Tune, which is not installed; install it with\n'
                 '    pip install "bh8-gym[cluster]"        (from a clone: pip install -e ".[cluster]")')
-# Options fixed when a sweep starts: --resume takes them from sweep.json.
-FIXED_OPTIONS = ("config", "algo", "env", "seeds", "samples", "search", "timesteps", "n_envs",
-                 "resources_per_trial", "max_concurrent", "max_failures", "storage", "out")
-
-
-def resources_argument(text: str) -> dict[str, float]:
-    """argparse `type=` for --resources-per-trial: "cpu=2", "cpu=1,gpu=0.5", custom resources too."""
-    resources: dict[str, float] = {}
-    for item in text.split(","):
-        name, equals, value = item.strip().partition("=")
-        try:
-            amount = float(value)
-        except ValueError:
-            amount = float("nan")
-        if not equals or not name or not amount >= 0 or name in resources:
-            raise argparse.ArgumentTypeError(f"expected NAME=AMOUNT pairs such as cpu=2 or cpu=1,gpu=0.5, got {text!r}")
-        resources[name.lower() if name.lower() in ("cpu", "gpu", "memory") else name] = amount
-    if resources.get("cpu", 1) <= 0:
-        raise argparse.ArgumentTypeError(f"a trial needs at least some CPU (cpu > 0), got {text!r}")
-    resources.setdefault("cpu", 1.0)
-    return resources
+# Ray Tune's state in the experiment folder is pickles: --resume loads it only under this account's
+# seal (agents/state_seal.py) or with --trust-file.
+SEAL_FILE = "ray_state.seal.json"
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -76,142 +67,52 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     what.add_argument("--seeds", default=None, metavar="LIST",
                       help="seeds, e.g. 0,1,2,3 or 0-3: every configuration trains once per seed "
                            "(default: the config's sweep.seeds, else 0)")
-    what.add_argument("--samples", type=integer_argument(1), default=None,
+    what.add_argument("--samples", type=integer_argument(1, MAX_SAMPLES), default=None,
                       help="draws of the search space's random dimensions per grid point (Optuna: configurations "
                            "tried; default: the config's sweep.samples, else 1)")
     what.add_argument("--search", choices=("random", "optuna"), default=None,
                       help="search algorithm over the space: random/grid (Ray Tune's), or optuna (needs "
                            "`pip install optuna`; default: the config's sweep.search, else random)")
-    what.add_argument("--timesteps", type=integer_argument(1), default=None,
+    what.add_argument("--timesteps", type=integer_argument(1, MAX_TIMESTEPS), default=None,
                       help="env steps per trial (default: the config's train.total_timesteps)")
-    what.add_argument("--n-envs", type=integer_argument(1), default=None,
+    what.add_argument("--n-envs", type=integer_argument(1, MAX_ENVS), default=None,
                       help="envs per trial (default: the trial's CPUs from --resources-per-trial)")
     where = parser.add_argument_group("where it runs")
     where.add_argument("--out", type=Path, default=None, help="sweep directory (required unless --resume)")
-    where.add_argument("--address", default=None,
+    where.add_argument("--address", type=address_argument, default=None,
                        help="join a running Ray cluster (`ray start --head` prints it; 'auto' finds the one on this "
-                            "machine); default: start Ray on this machine for this sweep")
-    where.add_argument("--num-cpus", type=integer_argument(1), default=None,
+                            "machine); checked to answer within " f"{CONNECT_TIMEOUT_S:g} s; default: start Ray on "
+                            "this machine for this sweep")
+    where.add_argument("--num-cpus", type=integer_argument(1, MAX_CPUS), default=None,
                        help="CPUs of the local Ray (without --address; default: this machine's, os.cpu_count())")
     where.add_argument("--resources-per-trial", type=resources_argument, default=None, metavar="SPEC",
                        help="what one trial reserves, e.g. cpu=2 or cpu=1,gpu=0.5 (default cpu=1)")
-    where.add_argument("--max-concurrent", type=integer_argument(1), default=None,
+    where.add_argument("--max-concurrent", type=integer_argument(1, MAX_TRIALS), default=None,
                        help="trials running at once (default: as many as the resources allow)")
     where.add_argument("--storage", type=Path, default=None,
                        help="folder for the trials' run directories and Ray Tune's state: on a cluster a path every "
-                            "node sees (NFS); default: the sweep directory itself")
+                            "node sees (NFS); default: the sweep directory itself. With --resume: the --storage the "
+                            "sweep started with, which it needs again")
     faults = parser.add_argument_group("faults")
-    faults.add_argument("--max-failures", type=integer_argument(0), default=None,
+    faults.add_argument("--max-failures", type=integer_argument(0, MAX_FAILURES), default=None,
                         help="retries of a trial that crashed or whose worker died, each from its last checkpoint "
                              "(default 0)")
     faults.add_argument("--resume", type=Path, default=None, metavar="DIR",
                         help="continue the sweep in DIR (stopped by Ctrl-C or a crash): unfinished and failed trials go "
                              "on from their checkpoints; its settings stay those it started with")
+    faults.add_argument("--trust-file", action="store_true",
+                        help="with --resume: load Ray Tune's saved state even if this account's bh8 sweep did not seal "
+                             "it (a sweep killed with kill -9, or a folder from elsewhere). It is pickles, and "
+                             "unpickling runs whatever code is in them: only for a folder you trust (default: refuse)")
     test = parser.add_argument_group("test evaluation (bh8 eval of the chosen model)")
-    test.add_argument("--test-episodes", type=integer_argument(1), default=50,
+    test.add_argument("--test-episodes", type=integer_argument(1, MAX_EPISODES), default=50,
                       help="episodes per object set (default: %(default)s)")
-    test.add_argument("--test-seed", type=integer_argument(0), default=100_000,
+    test.add_argument("--test-seed", type=integer_argument(0, MAX_SEED), default=100_000,
                       help="seed of the first test episode (default: %(default)s, bh8 eval's)")
     test.add_argument("--test-objects", default=None,
                       help="object sets (default: bh8 eval's, the test splits test,primitives-test)")
-    test.add_argument("--test-top", type=integer_argument(1), default=1,
+    test.add_argument("--test-top", type=integer_argument(1, 1000), default=1,
                       help="evaluate the best N trials on the test split (default: %(default)s)")
-
-
-def _absolute_object_files(config: dict) -> None:
-    """Object files named relative to where bh8 sweep runs: a trial runs elsewhere (a Ray worker)."""
-    for table in ("env_kwargs", "eval_env_kwargs"):
-        files = config[table].get("object_files")
-        if isinstance(files, list):
-            config[table]["object_files"] = [
-                str(Path(entry.split(":")[0]).resolve()) + entry[len(entry.split(":")[0]):]
-                if isinstance(entry, str) and Path(entry.split(":")[0]).exists() else entry for entry in files]
-
-
-def new_settings(args: argparse.Namespace) -> dict:
-    """The settings of a new sweep from its config and the command line, checked; sweep dir created."""
-    from bh8_gym.agents.train import _check_config, default_config_path, load_config
-
-    if args.out is None:
-        raise SweepConfigError("--out DIR is required (or --resume DIR to continue a sweep)")
-    config_path = args.config or default_config_path(args.algo or "PPO", args.env or "BH8Grasp-v0")
-    config = load_config(config_path)
-    if args.algo and config["algorithm"] != args.algo:
-        raise SweepConfigError(f"--algo {args.algo} contradicts {str(config_path)!r} (algorithm = {config['algorithm']!r})")
-    if args.env and args.env != config["env_id"]:
-        raise SweepConfigError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
-    sweep = read_sweep_table(config)
-    _check_config(config)
-    if args.seeds is not None:
-        sweep["seeds"] = parse_seeds(args.seeds)
-    if args.samples is not None:
-        sweep["samples"] = args.samples
-    if args.search is not None:
-        sweep["search"] = args.search
-    check_sweep(config, sweep)
-    if sweep["search"] == "optuna":
-        try:
-            import optuna  # noqa: F401
-        except ImportError:
-            raise SweepConfigError("--search optuna needs Optuna: pip install optuna") from None
-    timesteps = args.timesteps
-    total = timesteps or int(config["train"].get("total_timesteps", 100_000))
-    freq = int(config["eval"].get("freq", 10_000))
-    if total < freq:
-        raise SweepConfigError(f"a trial of {total} steps makes no validation evaluation (one every eval.freq = {freq} "
-                               "steps), so there is nothing to select on; raise --timesteps or lower eval.freq")
-    _absolute_object_files(config)
-    resources = args.resources_per_trial or {"cpu": 1.0}
-    sweep_dir = args.out.resolve()
-    experiment = (args.storage.resolve() if args.storage else sweep_dir.parent) / sweep_dir.name
-    if (sweep_dir / SETTINGS_FILE).exists():
-        raise SweepConfigError(f"{str(sweep_dir)!r} holds a sweep already; continue it with --resume {args.out} "
-                               "or choose another --out")
-    for folder in {sweep_dir, experiment}:
-        if folder.exists() and any(folder.iterdir()):
-            raise SweepConfigError(f"{str(folder)!r} is not empty; choose another --out")
-    return {
-        "version": 1,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "sweep_dir": str(sweep_dir),
-        "experiment_path": str(experiment),
-        "config_path": str(Path(config_path).resolve()),
-        "config": config,
-        **sweep,
-        "timesteps": timesteps,
-        "n_envs": args.n_envs or max(1, int(resources["cpu"])),
-        "resources": resources,
-        "max_concurrent": args.max_concurrent,
-        "max_failures": args.max_failures or 0,
-    }
-
-
-def resumed_settings(args: argparse.Namespace) -> dict:
-    """The settings of the sweep in --resume DIR (an option that would change them is an error)."""
-    import json
-
-    given = [f"--{name.replace('_', '-')}" for name in FIXED_OPTIONS if getattr(args, name) is not None]
-    if given:
-        raise SweepConfigError(f"--resume continues a sweep with the settings it started with; drop {', '.join(given)}")
-    path = args.resume / SETTINGS_FILE
-    if not args.resume.is_dir():
-        raise SweepConfigError(f"--resume {str(args.resume)!r}: no such directory")
-    try:
-        settings = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
-        raise SweepConfigError(f"--resume {str(args.resume)!r}: not a sweep directory (cannot read {SETTINGS_FILE}: "
-                               f"{error})") from None
-    if not isinstance(settings, dict) or settings.get("version") != 1:
-        raise SweepConfigError(f"--resume {str(args.resume)!r}: {SETTINGS_FILE} is not a bh8 sweep's")
-    return settings
-
-
-def _write_settings(settings: dict) -> None:
-    from bh8_gym.agents.train import write_json_atomic
-
-    sweep_dir = Path(settings["sweep_dir"])
-    sweep_dir.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(sweep_dir / SETTINGS_FILE, settings)
 
 
 def _trial_dirname(trial) -> str:
@@ -261,34 +162,6 @@ def _tuner(settings: dict, resume: bool):
     )
 
 
-def _start_ray(args: argparse.Namespace, settings: dict) -> bool:
-    """Join --address or start Ray here; True if this process started it (and shuts it down)."""
-    import ray
-
-    if ray.is_initialized():
-        return False
-    try:
-        if args.address:
-            ray.init(address=args.address, log_to_driver=True)
-        else:
-            # "local": a Ray of its own even when `ray start` left one running here (that one: --address auto)
-            ray.init(address="local", num_cpus=args.num_cpus or os.cpu_count() or 1, include_dashboard=False)
-    except (ConnectionError, RuntimeError, ValueError) as error:
-        where = f"the Ray cluster at {args.address!r}" if args.address else "a local Ray"
-        hint = ("; a cluster with token authentication (Ray's default once ~/.ray/auth_token exists) also needs "
-                "RAY_AUTH_MODE=token and its token here (docs/cluster.md)") if args.address else ""
-        raise SweepConfigError(f"cannot start or join {where}: {error}{hint}") from None
-    total = ray.cluster_resources()
-    names = {"cpu": "CPU", "gpu": "GPU"}  # Ray's names in cluster_resources()
-    short = {name: amount for name, amount in settings["resources"].items()
-             if amount > total.get(names.get(name, name), 0.0)}
-    if short:
-        ray.shutdown()
-        raise SweepConfigError("--resources-per-trial asks for more than the whole cluster has: " + ", ".join(
-            f"{name}={amount:g} > {total.get(names.get(name, name), 0.0):g}" for name, amount in short.items()))
-    return True
-
-
 def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path, bool]:
     """Test evaluation of the chosen model(s) (only once every trial has finished), sweep.md, plot."""
     from bh8_gym.agents.evaluate import DEFAULT_EVALUATION_SETS
@@ -329,6 +202,45 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
     return tests, report, failed
 
 
+def _ours() -> tuple[str, ...]:
+    """What bh8 sweep itself keeps in the experiment folder (the sweep directory unless --storage):
+    Ray Tune reads none of it, so the seal leaves it out."""
+    from bh8_gym.agents.sweep_report import PLOT_FILE, REPORT_FILE, TEST_DIR
+    from bh8_gym.agents.sweep_trial import RUNS_DIR
+
+    return RUNS_DIR, SETTINGS_FILE, SEAL_FILE, REPORT_FILE, PLOT_FILE, TEST_DIR
+
+
+def _check_ray_state(settings: dict, trust: bool) -> None:
+    """Before Ray Tune unpickles a stopped sweep's state: this account's bh8 sweep sealed it and
+    it is unchanged (agents/state_seal.py), unless the user trusts the folder."""
+    from ray import tune
+
+    from bh8_gym.agents.state_seal import SealError, check_sealed
+
+    experiment = Path(settings["experiment_path"])
+    if trust or not tune.Tuner.can_restore(str(experiment)):
+        return
+    try:
+        check_sealed(experiment, Path(settings["sweep_dir"]) / SEAL_FILE, skip=_ours())
+    except (SealError, OSError) as error:
+        raise SweepConfigError(
+            f"--resume: Ray Tune's saved state in {str(experiment)!r} is pickles, which run code when loaded, and "
+            f"{error}. If the folder is yours alone (bh8 sweep was killed before it could seal it), resume with "
+            "--trust-file") from None
+
+
+def _seal_ray_state(settings: dict) -> None:
+    """Seal what Ray Tune saved in the experiment folder, so that --resume can load it (a failure is
+    said: the next --resume then needs --trust-file)."""
+    from bh8_gym.agents.state_seal import SealError, seal
+
+    try:
+        seal(Path(settings["experiment_path"]), Path(settings["sweep_dir"]) / SEAL_FILE, skip=_ours())
+    except (SealError, OSError) as error:
+        print(f"bh8 sweep: cannot seal Ray Tune's state ({error}); --resume will need --trust-file", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         import ray  # noqa: F401
@@ -342,12 +254,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = resumed_settings(args) if args.resume is not None else new_settings(args)
         experiment = Path(settings["experiment_path"])
-        owns_ray = _start_ray(args, settings)
+        if args.resume is not None:
+            _check_ray_state(settings, args.trust_file)
+        if args.address:
+            check_reachable(args.address)
+        owns_ray = start_ray(args, settings)
         if args.resume is None:
-            _write_settings(settings)
+            write_settings(settings)
     except (SweepConfigError, TrainingError, ValueError) as error:
         print(f"bh8 sweep: {error}", file=sys.stderr)
         return 2
+    resume_hint = f"continue with bh8 sweep --resume {settings['sweep_dir']}"
     try:
         tuner = _tuner(settings, resume=args.resume is not None)
         print(f"bh8 sweep: {'resuming ' if args.resume else ''}{count_trials(settings)} trials of "
@@ -358,13 +275,21 @@ def run(args: argparse.Namespace) -> int:
     except SweepConfigError as error:
         print(f"bh8 sweep: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # a second Ctrl-C while Ray Tune was stopping the trials
+        print(f"\nbh8 sweep: stopped; {resume_hint}", file=sys.stderr)
+        return 130
     finally:
+        _seal_ray_state(settings)
         if owns_ray:
             import ray
 
             ray.shutdown()
-    records = collect(results, experiment, settings["seeds"])
-    tests, report, test_failed = _report(settings, records, args)
+    try:
+        records = collect(results, experiment, settings["seeds"])
+        tests, report, test_failed = _report(settings, records, args)
+    except KeyboardInterrupt:
+        print(f"\nbh8 sweep: stopped while writing the report; {resume_hint}", file=sys.stderr)
+        return 130
     counts = {status: sum(r.status == status for r in records) for status in (COMPLETE, ERROR, STOPPED, PENDING)}
     print(f"bh8 sweep: {len(records)} trials: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n)
           + f"; report {report}")
@@ -374,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
               f"{record.best['success_rate']:.3f}, test {summary['success_rate']:.3f} "
               f"({summary['successes']}/{summary['episodes']}); model {record.model}")
     if counts[STOPPED] or counts[PENDING]:
-        print(f"bh8 sweep: stopped with {counts[STOPPED] + counts[PENDING]} unfinished trials; continue with "
-              f"bh8 sweep --resume {settings['sweep_dir']}", file=sys.stderr)
+        print(f"bh8 sweep: stopped with {counts[STOPPED] + counts[PENDING]} unfinished trials; {resume_hint}",
+              file=sys.stderr)
         return 130
     return 1 if counts[ERROR] or test_failed else 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import glob
 import io
 import json
 import os
@@ -30,7 +31,7 @@ COMPLETE, ERROR, STOPPED, PENDING = "complete", "error", "stopped", "pending"
 @dataclass
 class TrialRecord:
     trial_id: str
-    seed: int
+    seed: int | None  # None: a trial that never started (nothing says which seed it would train)
     space: dict
     run_dir: Path
     status: str
@@ -87,14 +88,31 @@ def _error_line(error: BaseException | None) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
+def _trial_params(result, experiment_path: Path) -> tuple[dict, Path | None]:
+    """A trial's draw (seed or Repeater index, "space") and its run directory if it has one. Ray's
+    result carries the draw only once the trial has reported (a trial stopped by Ctrl-C before its
+    first evaluation has not); then the trial.json of its run directory, which the trial writes
+    when it starts."""
+    trial_id = Path(result.path).name
+    found = sorted((Path(experiment_path) / RUNS_DIR).glob(f"{glob.escape(trial_id)}_seed*"))
+    run_dir = found[0] if found else None
+    if result.config:
+        return result.config, run_dir
+    trial = _read_json(run_dir / TRIAL_FILE) if run_dir is not None else None
+    if trial and isinstance(trial.get("seed"), int):
+        return {"seed": trial["seed"], "space": trial.get("space") or {}}, run_dir
+    return {}, run_dir
+
+
 def collect(results, experiment_path: Path, seeds: list[int]) -> list[TrialRecord]:
     """One record per trial of Ray Tune's ResultGrid, its numbers from the run directory."""
     records = []
     for result in results:
         trial_id = Path(result.path).name
-        params = result.config or {}
+        params, found = _trial_params(result, experiment_path)
         seed = trial_seed(params, seeds)
-        run_dir = Path(experiment_path) / RUNS_DIR / run_dir_name(trial_id, seed)
+        run_dir = (Path(experiment_path) / RUNS_DIR / run_dir_name(trial_id, seed) if seed is not None
+                   else found or Path(experiment_path) / RUNS_DIR / trial_id)
         final = _read_json(run_dir / RESULT_FILE)
         trial = _read_json(run_dir / TRIAL_FILE) or {}
         if final is not None:
@@ -252,7 +270,7 @@ def markdown(settings: dict, records: list[TrialRecord], tests: list[tuple[Trial
         at = "-" if best is None else f"{int(best['timesteps'])}"
         status = record.status + (f": {record.error}" if record.error else "")
         lines.append(f"| {rank if record.status == COMPLETE and best is not None else '-'} | {record.trial_id} | "
-                     f"{record.seed} | {describe(record.space)} | {success} | {ci} | {at} | {record.steps} | "
+                     f"{'-' if record.seed is None else record.seed} | {describe(record.space)} | {success} | {ci} | {at} | {record.steps} | "
                      f"{_duration(record.wall_seconds)} | {record.attempts} | {status.replace('|', '/')} |")
     lines += ["", "Run directories (`bh8 train` layout): "
               f"`{Path(settings['experiment_path']) / RUNS_DIR}/<trial>_seed<seed>/`."]

@@ -18,21 +18,24 @@ dimensions are made for each grid point. No Ray here: `tune_domains` converts th
 from __future__ import annotations
 
 import copy
-import dataclasses
-import inspect
+import itertools
 import math
 from typing import Any
 
-from bh8_gym.agents.pretrain import PretrainSettings
+from bh8_gym.agents import config_check
 
 SWEEP_TABLE = "sweep"
 SWEEP_KEYS = ("seeds", "samples", "search", "space")
 SEARCHES = ("random", "optuna")
 KINDS = ("grid", "choice", "uniform", "loguniform")
-# Keys of the config's [train] and [eval] tables that bh8 train reads.
-TRAIN_KEYS = ("total_timesteps", "checkpoint_freq", "n_envs")
-EVAL_KEYS = ("freq", "episodes", "seed")
 ENV_TABLES = ("env_kwargs", "eval_env_kwargs")
+MAX_SEEDS = 1000  # seeds of one sweep (--seeds 0-999)
+MAX_TRIALS = 10_000  # seeds x grid points x samples
+MAX_SAMPLES = MAX_TRIALS
+MAX_VALUES = 1000  # of one grid or choice dimension
+# Past this many combinations of the space's values, each dimension's values are checked on the
+# base config alone (`check_space_values`).
+MAX_CHECKED_COMBINATIONS = 4096
 
 
 class SweepConfigError(ValueError):
@@ -40,28 +43,32 @@ class SweepConfigError(ValueError):
 
 
 def parse_seeds(text: str) -> list[int]:
-    """`--seeds 0,1,2,3` (or a range `0-3`) as a list of distinct non-negative integers."""
+    """`--seeds 0,1,2,3` (or a range `0-3`) as a list of distinct integers in 0..MAX_SEED, at most
+    MAX_SEEDS of them: checked before a range is expanded, so `0-4294967295` is refused at once."""
     seeds: list[int] = []
+    usage = (f"--seeds: expected at most {MAX_SEEDS} seeds in 0..{config_check.MAX_SEED}, as comma-separated "
+             f"integers or ranges such as 0,1,2 or 0-3")
+    if len(text) > 100_000:
+        raise SweepConfigError(f"{usage}; got {len(text)} characters")
     for part in text.split(","):
         part = part.strip()
         try:
-            if "-" in part[1:]:
-                low, high = (int(x) for x in part.split("-", 1))
-                if high < low:
-                    raise ValueError
-                seeds += range(low, high + 1)
-            else:
-                seeds.append(int(part))
+            low, _, high = part.partition("-") if "-" in part[1:] else (part, "", part)
+            low, high = int(low), int(high)  # more than 4300 digits: ValueError
         except ValueError:
-            raise SweepConfigError(f"--seeds: expected comma-separated integers or ranges such as 0,1,2 or "
-                                   f"0-3, got {text!r}") from None
+            raise SweepConfigError(f"{usage}, got {text!r}") from None
+        if not 0 <= low <= high <= config_check.MAX_SEED or len(seeds) + high - low + 1 > MAX_SEEDS:
+            raise SweepConfigError(f"{usage}, got {part!r}")
+        seeds += range(low, high + 1)
     return check_seeds(seeds, "--seeds")
 
 
 def check_seeds(seeds: Any, where: str) -> list[int]:
-    if (not isinstance(seeds, list) or not seeds
-            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < 2**32 for s in seeds)):
-        raise SweepConfigError(f"{where}: expected a non-empty list of integers in 0..2**32-1, got {seeds!r}")
+    if (not isinstance(seeds, list) or not 0 < len(seeds) <= MAX_SEEDS
+            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= config_check.MAX_SEED
+                   for s in seeds)):
+        raise SweepConfigError(f"{where}: expected a list of 1..{MAX_SEEDS} integers in 0..{config_check.MAX_SEED}, "
+                               f"got {config_check.shown(seeds)}")
     if len(set(seeds)) != len(seeds):
         raise SweepConfigError(f"{where}: seeds repeat in {seeds!r}")
     return list(seeds)
@@ -89,8 +96,9 @@ def check_spec(key: str, spec: dict) -> dict:
     if len(spec) != 1 or next(iter(spec)) not in KINDS:
         raise SweepConfigError(f"sweep.space.{key}: give exactly one of {', '.join(KINDS)}, got {spec!r}")
     kind, values = next(iter(spec.items()))
-    if not isinstance(values, list) or not values:
-        raise SweepConfigError(f"sweep.space.{key}: {kind} takes a non-empty list, got {values!r}")
+    if not isinstance(values, list) or not 0 < len(values) <= MAX_VALUES:
+        raise SweepConfigError(f"sweep.space.{key}: {kind} takes a list of 1..{MAX_VALUES} values, "
+                               f"got {config_check.shown(values)}")
     if kind in ("uniform", "loguniform"):
         if (len(values) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in values)
                 or not values[0] < values[1] or (kind == "loguniform" and values[0] <= 0)
@@ -119,28 +127,6 @@ def apply_space(config: dict, values: dict[str, Any]) -> dict:
     return config
 
 
-def _env_parameters(env_id: str) -> set[str] | None:
-    """The keyword arguments the env's class takes (None: it takes any)."""
-    import gymnasium as gym
-
-    import bh8_gym  # noqa: F401  (registers the environments)
-
-    creator = gym.envs.registration.load_env_creator(gym.registry[env_id].entry_point)
-    parameters = inspect.signature(creator).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
-        return None
-    return set(parameters) | {"max_episode_steps"}
-
-
-def _policy_parameters(algorithm: str) -> set[str]:
-    """The policy_kwargs bh8 train passes on: the policy class's keywords, and `activation`."""
-    from stable_baselines3.common.policies import ActorCriticPolicy
-    from stable_baselines3.sac.policies import SACPolicy
-
-    policy = ActorCriticPolicy if algorithm == "PPO" else SACPolicy
-    return (set(inspect.signature(policy).parameters) - {"observation_space", "action_space", "lr_schedule"}) | {"activation"}
-
-
 def check_key(config: dict, key: str) -> None:
     """A search-space key must name a setting bh8 train reads, so a typo is an error now rather than
     a key every trial silently ignores."""
@@ -157,20 +143,13 @@ def check_key(config: dict, key: str) -> None:
         raise SweepConfigError(f"sweep.space.{key}: unknown config key; a search dimension is asymmetric_critic or "
                                f"a key in one of the tables {', '.join(tables)} (e.g. hyperparameters.learning_rate)")
     name = rest.split(".")[0]
-    if head == "train":
-        known = TRAIN_KEYS
-    elif head == "eval":
-        known = EVAL_KEYS
-    elif head == "hyperparameters":
-        from bh8_gym.agents.train import TRAINER_ARGUMENTS, _algorithm_class
-
-        known = tuple(set(inspect.signature(_algorithm_class(config["algorithm"])).parameters) - set(TRAINER_ARGUMENTS))
-    elif head == "policy_kwargs":
-        known = tuple(_policy_parameters(config["algorithm"]))
-    elif head == "pretrain":
-        known = tuple(f.name for f in dataclasses.fields(PretrainSettings))
+    tables = {"train": config_check.TRAIN_KEYS, "eval": config_check.EVAL_KEYS,
+              "hyperparameters": config_check.HYPERPARAMETERS[config["algorithm"]],
+              "policy_kwargs": config_check.POLICY_KWARGS[config["algorithm"]], "pretrain": config_check.PRETRAIN_KEYS}
+    if head in tables:
+        known = tuple(key for key, kind in tables[head].items() if not isinstance(kind, config_check.Unsupported))
     else:
-        parameters = _env_parameters(config["env_id"])
+        parameters = config_check.env_parameters(config["env_id"])
         known = None if parameters is None else tuple(parameters)
     if known is not None and name not in known:
         raise SweepConfigError(f"sweep.space.{key}: unknown config key ({head} has no {name!r}; "
@@ -201,8 +180,8 @@ def read_sweep_table(config: dict) -> dict:
 def check_sweep(config: dict, sweep: dict) -> None:
     """samples, search and every search-space key (also after the command line changed them)."""
     samples = sweep["samples"]
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise SweepConfigError(f"sweep.samples must be a positive integer, got {samples!r}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_SAMPLES:
+        raise SweepConfigError(f"sweep.samples must be an integer in 1..{MAX_SAMPLES}, got {samples!r}")
     if sweep["search"] not in SEARCHES:
         raise SweepConfigError(f"sweep.search must be one of {', '.join(SEARCHES)}, got {sweep['search']!r}")
     for key in sweep["space"]:
@@ -214,6 +193,35 @@ def check_sweep(config: dict, sweep: dict) -> None:
                                    "use choice")
         if not sweep["space"]:
             raise SweepConfigError("sweep.search = 'optuna' needs a [sweep.space] to search")
+    trials = count_trials(sweep)
+    if trials > MAX_TRIALS:
+        raise SweepConfigError(f"the sweep has {trials} trials (seeds x grid points x samples); at most {MAX_TRIALS}")
+
+
+def check_space_values(config: dict, space: dict[str, dict], n_envs: int) -> None:
+    """Every config the space can give passes bh8 train's checks (agents/config_check.py): each
+    combination of the grid and choice values and of the ends of each range, and for a range one
+    value between its ends too (an integer setting drawn from a range would get fractions). The
+    checks are intervals, so a draw between two good ends is good. Past MAX_CHECKED_COMBINATIONS
+    each dimension is checked on the base config alone."""
+    options = {}
+    for key, spec in space.items():
+        (kind, values), = spec.items()
+        options[key] = list(values) if kind in ("grid", "choice") else [values[0], values[1],
+                                                                         values[0] + 0.382 * (values[1] - values[0])]
+    combinations = math.prod(len(values) for values in options.values())
+    if combinations <= MAX_CHECKED_COMBINATIONS:
+        drawn = (dict(zip(options, values)) for values in itertools.product(*options.values()))
+    else:
+        drawn = ({key: value} for key, values in options.items() for value in values)
+    for values in drawn:
+        trial = apply_space(config, values)
+        try:
+            config_check.check_config(trial)
+            config_check.check_rollout(trial, n_envs)
+        except config_check.ConfigError as error:
+            shown = ", ".join(f"{key} = {config_check.shown(value)}" for key, value in values.items())
+            raise SweepConfigError(f"[sweep.space] gives a config bh8 train refuses ({shown}): {error}") from None
 
 
 def count_trials(sweep: dict) -> int:

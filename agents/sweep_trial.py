@@ -34,11 +34,14 @@ def run_dir_name(trial_id: str, seed: int) -> str:
     return f"{trial_id}_seed{seed}"
 
 
-def trial_seed(params: dict, seeds: list[int]) -> int:
-    """The seed of a trial: a grid dimension of its own, or the Repeater's index into the seeds."""
+def trial_seed(params: dict, seeds: list[int]) -> int | None:
+    """The seed of a trial: a grid dimension of its own, or the Repeater's index into the seeds
+    (None: its parameters name neither, e.g. those of a trial that has not started)."""
     if "seed" in params:
         return int(params["seed"])
-    return int(seeds[int(params[TRIAL_INDEX]) % len(seeds)])
+    if TRIAL_INDEX in params:
+        return int(seeds[int(params[TRIAL_INDEX]) % len(seeds)])
+    return None
 
 
 def _metrics(state: dict, row: dict | None = None) -> dict:
@@ -85,6 +88,8 @@ def run_trial(params: dict, settings: dict) -> None:
 
     trial_id = tune.get_context().get_trial_id()
     seed = trial_seed(params, settings["seeds"])
+    if seed is None:
+        raise RuntimeError(f"trial {trial_id} was given no seed ({sorted(params)})")
     config = apply_space(settings["config"], params.get("space", {}))
     run_dir = Path(settings["experiment_path"]) / RUNS_DIR / run_dir_name(trial_id, seed)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ Output directory layout (`--out DIR`):
     run.json                     algorithm, env id and kwargs, seed, the resolved config
     checkpoints/latest.zip       the model; a checkpoint's files are replaced as one unit (each staged
                                  as NAME.next first), so a kill leaves the old checkpoint or the new one
-    checkpoints/latest_replay_buffer.pkl   SAC only
+    checkpoints/latest_replay_buffer.npz   SAC only (its arrays: no pickle)
     checkpoints/latest.json      timestep counter, the run's total, best evaluation so far, next
                                  evaluation step
     checkpoints/best_model.zip   the best model as of that checkpoint (restored by --resume)
@@ -18,6 +18,8 @@ Output directory layout (`--out DIR`):
 SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
 and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
 --timesteps may extend the run; without it the run trains to the total it was started with).
+Nothing in the run directory is unpickled (agents/checkpoint_file.py; an earlier version's pickled
+SAC replay buffer only with --trust-file).
 Evaluations made after the checkpoint are undone (their evaluations.csv rows, and a best_model.zip
 they wrote: the checkpoint's best model is put back).
 
@@ -28,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import inspect
 import json
 import os
 import signal
@@ -39,9 +40,27 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-
-from bh8_gym.agents.env_factory import EnvFactory, make_env
+from bh8_gym.agents.config_check import (
+    ACTIVATION_CLASSES,
+    ALGORITHMS,
+    MAX_CONFIG_BYTES,
+    MAX_ENVS,
+    MAX_TIMESTEPS,
+    check_config,
+    check_env_tables,
+    check_plain,
+    check_rollout,
+    check_run_metadata,
+)
+from bh8_gym.agents.checkpoint_file import (
+    LEGACY_REPLAY_BUFFER_FILE,
+    REPLAY_BUFFER_FILE,
+    CheckpointError,
+    load_checkpoint,
+    load_replay_buffer,
+    save_replay_buffer,
+)
+from bh8_gym.agents.env_factory import EnvFactory
 from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
 from bh8_gym.agents.pretrain import (
     DEMONSTRATIONS_FILE,
@@ -62,15 +81,11 @@ from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.envs import ENV_IDS
 from bh8_gym.envs.interfaces import host_options
 
-ALGORITHMS = ("PPO", "SAC")
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 CHECKPOINT_DIR = "checkpoints"
 # A checkpoint's files besides latest.json, which names their step and is replaced after them.
-CHECKPOINT_FILES = ("latest.zip", "latest_replay_buffer.pkl", BEST_MODEL_FILE)
+CHECKPOINT_FILES = ("latest.zip", REPLAY_BUFFER_FILE, BEST_MODEL_FILE)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-# Keyword arguments of the SB3 constructor that the trainer sets itself, not [hyperparameters].
-TRAINER_ARGUMENTS = ("policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs",
-                     "_init_setup_model")
 
 
 class TrainingError(RuntimeError):
@@ -102,11 +117,22 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     try:
         with path.open("rb") as handle:
-            config = tomllib.load(handle)
+            text = handle.read(MAX_CONFIG_BYTES + 1)
+        if len(text) > MAX_CONFIG_BYTES:
+            raise TrainingError(f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES >> 20} MB: not a config")
+        config = tomllib.loads(text.decode())
     except FileNotFoundError:
         raise TrainingError(f"config file {str(path)!r} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise TrainingError(f"config file {str(path)!r} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise TrainingError(f"config file {str(path)!r} nests its tables or lists too deep") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrainingError(f"cannot read config file {str(path)!r}: {exc}") from None
+    try:
+        check_plain(config, f"config file {str(path)!r}")  # before anything walks it
+    except ValueError as error:
+        raise TrainingError(str(error)) from None
     for key in ("algorithm", "env_id"):
         if key not in config:
             raise TrainingError(f"config file {str(path)!r} has no {key!r}")
@@ -121,8 +147,6 @@ def _pretrain_settings(config: dict):
     """The config's [pretrain] table (agents/pretrain.py), checked; None without one."""
     if "pretrain" not in config:
         return None
-    if config["algorithm"] != "PPO":
-        raise TrainingError("[pretrain] warm-starts an actor-critic: it needs PPO")
     try:
         return PretrainSettings.from_table(dict(config["pretrain"]))
     except (TypeError, ValueError) as error:
@@ -133,7 +157,7 @@ def read_run_json(path: Path) -> dict:
     """A run's JSON file (run.json, checkpoints/latest.json); TrainingError names a damaged one."""
     try:
         data = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, RecursionError) as error:
         raise TrainingError(f"--resume: cannot read {str(path)!r} ({error}); the run cannot be resumed") from None
     if not isinstance(data, dict):
         raise TrainingError(f"--resume: {str(path)!r} holds no JSON object; the run cannot be resumed")
@@ -154,11 +178,8 @@ def _policy_kwargs(config: dict) -> dict:
 
     kwargs = dict(config["policy_kwargs"])
     activation = kwargs.pop("activation", None)
-    if activation is not None:
-        activations = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU, "silu": nn.SiLU}
-        if activation not in activations:
-            raise TrainingError(f"policy_kwargs.activation must be one of {sorted(activations)}, got {activation!r}")
-        kwargs["activation_fn"] = activations[activation]
+    if activation is not None:  # a name config_check accepted
+        kwargs["activation_fn"] = getattr(nn, ACTIVATION_CLASSES[activation])
     return kwargs
 
 
@@ -193,17 +214,11 @@ def _algorithm_class(name: str):
 
 
 def _check_config(config: dict) -> None:
-    """The env id and the [hyperparameters] names, checked before anything is built or written."""
-    if config["env_id"] not in gym.registry:
-        raise TrainingError(f"env_id {config['env_id']!r} is not a registered environment "
-                            f"(bh8-gym has {', '.join(ENV_IDS)})")
-    algorithm = _algorithm_class(config["algorithm"])
-    accepted = set(inspect.signature(algorithm).parameters) - set(TRAINER_ARGUMENTS)
-    for name in config["hyperparameters"]:
-        if name in TRAINER_ARGUMENTS:
-            raise TrainingError(f"hyperparameters.{name} is set by bh8 train (see --seed and [policy_kwargs])")
-        if name not in accepted:
-            raise TrainingError(f"hyperparameters.{name}: {algorithm.__name__} has no such parameter")
+    """Every key of the config, checked before anything is built or written (agents/config_check.py)."""
+    try:
+        check_config(config)
+    except ValueError as error:
+        raise TrainingError(str(error)) from None
 
 
 class _WorkerEnvFactory:
@@ -224,27 +239,26 @@ class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
     def __init__(self, config: dict, out_dir: Path, n_envs: int | None = None, seed: int = 0,
-                 progress: bool = True, verbose: int = 0, on_evaluation=None, log=None):
+                 progress: bool = True, verbose: int = 0, on_evaluation=None, log=None, trust: bool = False):
         self.config = config
         #: Called with a line of text for each step of the warm start and each validation evaluation
         #: (`bh8 train` prints them); None: silent.
         self.log = log
+        #: --trust-file: a checkpoint's pickled replay buffer (earlier versions') may be unpickled.
+        self.trust = trust
         #: Called after each validation evaluation with its evaluations.csv row and the run's state
         #: (best so far); `bh8 sweep` reports them to Ray Tune.
         self.on_evaluation = on_evaluation
         #: PPO with a critic that sees privileged simulator state (agents/asymmetric.py).
-        self.asymmetric_critic = bool(config.get("asymmetric_critic", False))
-        if self.asymmetric_critic and config["algorithm"] != "PPO":
-            raise TrainingError(f"asymmetric_critic needs PPO, the config says {config['algorithm']!r}")
-        if self.asymmetric_critic and config["env_kwargs"].get("privileged"):
-            raise TrainingError("asymmetric_critic gives the critic privileged observations itself; "
-                                "remove privileged from env_kwargs (the actor must not see them)")
         _check_config(config)
+        self.asymmetric_critic = bool(config.get("asymmetric_critic", False))
         self.pretrain = _pretrain_settings(config)
         self.out_dir = Path(out_dir)
-        self.n_envs = int(n_envs if n_envs is not None else config["train"].get("n_envs", os.cpu_count() or 1))
-        if self.n_envs < 1:
-            raise ValueError(f"n_envs must be at least 1, got {self.n_envs}")
+        self.n_envs = int(n_envs if n_envs is not None
+                          else config["train"].get("n_envs", min(os.cpu_count() or 1, MAX_ENVS)))
+        if not 1 <= self.n_envs <= MAX_ENVS:
+            raise ValueError(f"n_envs must be in 1..{MAX_ENVS}, got {self.n_envs}")
+        check_rollout(config, self.n_envs)
         self.seed = int(seed)
         self.progress = progress
         self.verbose = verbose
@@ -276,11 +290,7 @@ class Trainer:
     def _check_env_kwargs(self) -> None:
         """Build the training and evaluation envs once here, so that a typo in the config is an
         error naming it rather than a SubprocVecEnv worker dying with a broken pipe."""
-        for table, kwargs in (("env_kwargs", self.config["env_kwargs"]), ("eval_env_kwargs", self.evaluation_env_kwargs)):
-            try:
-                make_env(self.config["env_id"], kwargs).close()
-            except ValueError as error:
-                raise TrainingError(f"{table}: {error}") from None
+        check_env_tables(self.config)
 
     def _vec_env(self):
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
@@ -341,12 +351,23 @@ class Trainer:
         return demonstrations
 
     def _resume_model(self, env):
-        algorithm = _algorithm_class(self.config["algorithm"])
-        model = algorithm.load(self.checkpoint_dir / "latest.zip", env=env, device="cpu",
-                               tensorboard_log=str(self.out_dir / "tb"), verbose=self.verbose)
-        replay = self.checkpoint_dir / "latest_replay_buffer.pkl"
-        if hasattr(model, "replay_buffer") and replay.exists():
-            model.load_replay_buffer(replay)
+        """The model as the run's config builds it, with the checkpoint's weights, optimiser states,
+        counters and SAC's replay buffer: nothing of the checkpoint is unpickled (checkpoint_file)."""
+        model = self._new_model(env)
+        try:
+            load_checkpoint(model, self.checkpoint_dir / "latest.zip")
+            replay, legacy = self.checkpoint_dir / REPLAY_BUFFER_FILE, self.checkpoint_dir / LEGACY_REPLAY_BUFFER_FILE
+            if hasattr(model, "replay_buffer") and replay.exists():
+                load_replay_buffer(model, replay)
+            elif hasattr(model, "replay_buffer") and legacy.exists():
+                if not self.trust:
+                    raise CheckpointError(
+                        f"{str(legacy)!r} (an earlier version's replay buffer) is a pickle, and unpickling runs "
+                        "whatever code it holds: resume with --trust-file if the run is yours, or remove the file "
+                        "to go on with an empty buffer")
+                model.load_replay_buffer(legacy)
+        except CheckpointError as error:
+            raise TrainingError(f"--resume: {error}") from None
         # SB3's load re-seeds the envs with the run's seed: the resumed half would replay the first
         # half's scenes. A seed of its own, fixed by the checkpoint's step, keeps the run deterministic.
         model.set_random_seed(self.seed + int(model.num_timesteps))
@@ -364,7 +385,7 @@ class Trainer:
         self._finish_checkpoint()
         save_model_atomic(model, _staged(directory / "latest.zip"))
         if getattr(model, "replay_buffer", None) is not None:
-            atomic_write(_staged(directory / "latest_replay_buffer.pkl"), model.save_replay_buffer)
+            atomic_write(_staged(directory / REPLAY_BUFFER_FILE), lambda handle: save_replay_buffer(model, handle))
         best = self.out_dir / BEST_MODEL_FILE
         if best.exists():
             copy_atomic(best, _staged(directory / BEST_MODEL_FILE))
@@ -521,16 +542,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", default=None, help="environment id (default: the config's, else BH8Grasp-v0)")
     parser.add_argument("--config", type=Path, default=None,
                         help="TOML config (default agents/configs/<algo>_<grasp|reach>.toml)")
-    parser.add_argument("--timesteps", type=integer_argument(1), default=None,
+    parser.add_argument("--timesteps", type=integer_argument(1, MAX_TIMESTEPS), default=None,
                         help="total env steps (default: the config's train.total_timesteps; with --resume the run's own total)")
-    parser.add_argument("--n-envs", type=integer_argument(1), default=None,
+    parser.add_argument("--n-envs", type=integer_argument(1, MAX_ENVS), default=None,
                         help="parallel envs (default: the config's train.n_envs, else os.cpu_count())")
     parser.add_argument("--seed", type=integer_argument(0, 2**32 - 1), default=None,
                         help="seeds the envs and the policy: the same seed repeats a run (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument("--trust-file", action="store_true",
+                        help="with --resume: unpickle a checkpoint's pickled replay buffer (latest_replay_buffer.pkl, "
+                             "written by earlier versions), which runs whatever code is in it: only for a run you made "
+                             "(default: refused; nothing else of a checkpoint is ever unpickled)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2; default: %(default)s)")
+    parser.add_argument("--verbose", type=int, choices=(0, 1, 2), default=0, help="SB3 verbosity (default: %(default)s)")
 
 
 def _differing_keys(ours: dict, theirs: dict, prefix: str = "") -> list[str]:
@@ -570,6 +595,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.resume and (args.out / RUN_METADATA_FILE).exists():
             run_metadata = read_run_json(args.out / RUN_METADATA_FILE)
+            check_run_metadata(run_metadata, str(args.out / RUN_METADATA_FILE))
             _check_resume_arguments(args, run_metadata)
             config, seed = run_metadata["config"], run_metadata["seed"]
         else:
@@ -582,7 +608,8 @@ def run(args: argparse.Namespace) -> int:
                 raise TrainingError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
             seed = 0 if args.seed is None else args.seed
         trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=seed,
-                          progress=not args.no_progress, verbose=args.verbose, log=console_line)
+                          progress=not args.no_progress, verbose=args.verbose, log=console_line,
+                          trust=args.trust_file)
         state = trainer.run(args.timesteps, resume=args.resume)
     except (TrainingError, ValueError) as exc:
         print(f"bh8 train: {exc}", file=sys.stderr)

@@ -44,11 +44,27 @@ def integer_argument(low: int, high: int | None = None, meaning: str = ""):
 
     def parse(text: str) -> int:
         try:
-            value = int(text)
+            value = int(text)  # more than 4300 digits: ValueError too
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text[:100]!r}") from None
         if value < low or (high is not None and value > high):
             raise argparse.ArgumentTypeError(f"must be {bounds}, got {value}")
+        return value
+
+    return parse
+
+
+def float_argument(low: float, high: float, meaning: str = ""):
+    """argparse `type=`: a finite number in low..high, else a usage error quoting it."""
+    bounds = f"a number in {low:g}..{high:g}" + (f" ({meaning})" if meaning else "")
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {bounds}, got {text[:100]!r}") from None
+        if not low <= value <= high:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"must be {bounds}, got {text[:100]}")
         return value
 
     return parse

@@ -213,7 +213,7 @@ def test_sac_checkpoint_keeps_the_replay_buffer_and_resumes(tmp_path):
     config = _tiny_reach_config("SAC")
     out = tmp_path / "sac"
     Trainer(config, out, n_envs=1, seed=0, progress=False).run(128)
-    assert (out / "checkpoints" / "latest_replay_buffer.pkl").is_file()
+    assert (out / "checkpoints" / "latest_replay_buffer.npz").is_file()
     trainer = Trainer(config, out, n_envs=1, seed=0, progress=False)
     env = trainer._vec_env()
     try:

@@ -26,11 +26,11 @@ def _grasp_config(pretrain: dict) -> dict:
 
 
 @pytest.mark.parametrize("table, message", [
-    ({"baseline": "squeeze", "episodez": 3}, "has no episodez"),
-    ({"baseline": "supervisory"}, "a LOOP policy"),
-    ({"baseline": "nonsense"}, "a LOOP policy"),
-    ({"episodes": 0}, "episodes must be at least 1"),
-    ({"learning_rate": -1.0}, "learning_rate must be positive"),
+    ({"baseline": "squeeze", "episodez": 3}, "has no key 'episodez'"),
+    ({"baseline": "supervisory"}, "baseline must be one of 'loop', 'squeeze'"),
+    ({"baseline": "nonsense"}, "baseline must be one of 'loop', 'squeeze'"),
+    ({"episodes": 0}, r"episodes must be an integer in 1\.\."),
+    ({"learning_rate": -1.0}, r"learning_rate must be in \(0, 1\]"),
     ({"keep_weight": 0.5, "keep_floor": 0.6}, "keep_floor must be in"),
     ({"keep_floor": -0.1}, "keep_floor must be in"),
 ])

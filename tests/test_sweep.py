@@ -47,6 +47,13 @@ seeds = {seeds}
 TEST_EPISODES = 3
 
 
+@pytest.fixture(autouse=True)
+def _own_seal_key(tmp_path, monkeypatch):
+    """Each test's sweeps seal Ray Tune's state with a key of its own (agents/state_seal.py), not
+    the account's; subprocesses inherit it."""
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config-home"))
+
+
 def _config(folder: Path, total: int = 4096, eval_freq: int = 1024, seeds: str = "[0, 1]", space: str = "") -> Path:
     path = folder / "tiny.toml"
     path.write_text(TINY.format(total=total, eval_freq=eval_freq, seeds=seeds, space=space))
@@ -275,11 +282,12 @@ def test_sweep_stopped_by_ctrl_c_resumes_and_reports_what_bh8_eval_measures(tmp_
 @pytest.mark.timeout(SWEEP_TEST_TIMEOUT)
 def test_killed_worker_is_retried_from_its_checkpoint_and_a_crash_is_reported(tmp_path):
     """`kill -9` of the worker running one trial: with --max-failures 1 it goes on from its last
-    checkpoint and completes; a trial whose config crashes PPO fails both attempts and is reported
-    (exit 1), and the sweep still ranks and tests the other."""
+    checkpoint and completes; a trial whose env cannot be built (a nested env setting the sweep
+    leaves to the env to check) fails both attempts and is reported (exit 1), and the sweep still
+    ranks and tests the other."""
     pytest.importorskip("ray")
     config = _config(tmp_path, total=6144, seeds="[0]",
-                     space='[sweep.space]\n"hyperparameters.batch_size" = {grid = [64, 1]}')
+                     space='[sweep.space]\n"env_kwargs.targets" = {grid = [{}, {bogus = 1}]}')
     sweep, log = tmp_path / "sweep", tmp_path / "sweep.log"
     process = _sweep_process(log, "--config", config, "--out", sweep, "--max-failures", "1")
     checkpoint = _wait_for(lambda: list(sweep.glob("runs/*/checkpoints/latest.json")), process, log)[0]
@@ -296,6 +304,6 @@ def test_killed_worker_is_retried_from_its_checkpoint_and_a_crash_is_reported(tm
     steps = [row["timesteps"] for row in _evaluations(run_dir)]
     assert steps == sorted(set(steps)) and steps[-1] == 6144
     crashed = next(row for trial_id, row in rows.items() if trial_id != trial["trial_id"])
-    assert crashed["config"] == "batch_size=1" and crashed["attempts"] == "2"
-    assert crashed["status"].startswith("error:") and "batch_size" in crashed["status"]
+    assert crashed["config"] == "targets={'bogus': 1}" and crashed["attempts"] == "2"
+    assert crashed["status"].startswith("error:") and "bogus" in crashed["status"]
     assert list((sweep / "test").glob(f"{run_dir.name}/results.json"))
