@@ -17,8 +17,9 @@ Drive-train model (one finger; docs/modelling.md tells the why and the numbers):
   link) at M/375, so the outer link's angle to the palm is always M/93.75 (SPEC §1): the motor
   position reported is 93.75 x that angle. Both joints are driven; their targets are corrected
   towards the exact 3:1 relation every step (`coupling_rate`) and neither leads the other by more
-  than three worm slacks, so a blocked link stops the whole finger; the motor's torque budget is
-  shared: inner torque + outer torque / 3 <= fraction x peak x 125 x efficiency.
+  than three worm slacks, so a blocked link stops the whole finger (a joint its partner holds back
+  is held there by its window's front edge, not by a zero velocity target alone); the motor's torque
+  budget is shared: inner torque + outer torque / 3 <= fraction x peak x 125 x efficiency.
 * TorqueSwitch: while closing, the torque the clutch passes to the inner link (its share of the
   motor torque plus the rotor's impact when the link is stopped suddenly, unless the outer link took
   the blow, App. B A1) above `breakaway_base_torque + breakaway_preload_slope x preload` disengages
