@@ -17,8 +17,9 @@ Drive-train model (one finger; docs/modelling.md tells the why and the numbers):
   link) at M/375, so the outer link's angle to the palm is always M/93.75 (SPEC §1): the motor
   position reported is 93.75 x that angle. Both joints are driven; their targets are corrected
   towards the exact 3:1 relation every step (`coupling_rate`) and neither leads the other by more
-  than three worm slacks, so a blocked link stops the whole finger; the motor's torque budget is
-  shared: inner torque + outer torque / 3 <= fraction x peak x 125 x efficiency.
+  than three worm slacks, so a blocked link stops the whole finger (a joint its partner holds back
+  is held there by its window's front edge, not by a zero velocity target alone); the motor's torque
+  budget is shared: inner torque + outer torque / 3 <= fraction x peak x 125 x efficiency.
 * TorqueSwitch: while closing, the torque the clutch passes to the inner link (its share of the
   motor torque plus the rotor's impact when the link is stopped suddenly, unless the outer link took
   the blow, App. B A1) above `breakaway_base_torque + breakaway_preload_slope x preload` disengages
@@ -389,6 +390,7 @@ class HandPlant:
         self._joint_low, self._joint_high = _JOINT_RANGE_LOW, _JOINT_RANGE_HIGH
         self._slack = prm.worm_slack
         self._coupling_play = 3.0 * prm.worm_slack  # rad of inner-link lead (q2 - 3 q3) the gears allow
+        self._held_back_speed = prm.worm_slack / self.dt  # rad/s: a coupled joint with less room is held back
         self._spread_low_stop, self._spread_high_stop = self._spread_low + stop, self._spread_high - stop
         self._brake_torque = prm.overrun_brake_torque
         self._speed_limit = prm.motor_no_load_speed
@@ -577,31 +579,38 @@ class HandPlant:
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
 
-    def _drive_worm(self, joint: int, target: float, force: float, sign: float, high: float | None = None) -> None:
+    def _drive_worm(self, joint: int, target: float, force: float, sign: float, high: float | None = None,
+                    low: float | None = None) -> None:
         """Drive a finger joint through its worm at `target` rad/s (`sign`: + closes) with at most `force`.
 
         The worm lets it move only in the drive's direction: its window's back edge follows the
         furthest position reached (lazily, within two `worm_slack`), its front edge is the joint's stop.
         A load helping the motion cannot make it run faster than `target` (the brake), and the motor's
         speed is capped at what ends the step at the stop (PyBullet enforces a limit only once the joint
-        is at it, so a fast joint would otherwise overshoot it). `high`: a closing stop short of the
-        joint's own (the palm, for an outer link).
+        is at it, so a fast joint would otherwise overshoot it). `high`, `low`: a closing or opening stop
+        short of the joint's own (the palm, for an outer link; a coupled partner held back).
         """
         state = self._state
         state.held[joint] = False
         position = state.positions[joint]
         velocity = state.velocities[joint]
-        slack, low = self._slack, self._joint_low[joint]
+        slack = self._slack
         if high is None:
             high = self._joint_high[joint]
+        if low is None:
+            low = self._joint_low[joint]
         forward = sign * target
         # (a joint told to wait, forward 0, is braked too: gravity must not turn it either way)
         if forward >= 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
                 and sign * state.torques[joint] < force and self._brake_torque > force:
             force = self._brake_torque
+        # The back edge follows the joint only up to the front edge: a joint pushed past its front edge
+        # (a limit gives a little under load) is held there, not followed on step by step.
         if sign > 0.0:
             back = position - slack
             if back - state.window_low[joint] > slack or state.window_high[joint] != high:
+                if back > high:
+                    back = high
                 if back < state.window_low[joint]:
                     back = state.window_low[joint]  # the back edge never moves back while closing
                 back = back if back > low else low
@@ -614,6 +623,8 @@ class HandPlant:
         else:
             back = position + slack
             if state.window_high[joint] - back > slack or state.window_low[joint] != low:
+                if back < low:
+                    back = low
                 if back > state.window_high[joint]:
                     back = state.window_high[joint]  # nor forward while opening
                 state.window_low[joint], state.window_high[joint] = low, (back if back < high else high)
@@ -622,6 +633,21 @@ class HandPlant:
         state.target_velocities[joint] = target
         state.forces[joint] = force
         state.position_gains[joint] = 0.0
+
+    def _coupled_edge(self, joint: int, edge: float, sign: float, stop: float | None) -> float:
+        """The front edge (rad) of an engaged finger joint its partner holds back: `edge`, where the
+        coupling's play ends, not past `stop` (None: the joint's own). It never moves back: a joint
+        already past `edge` is held where it was first held back (the worm's teeth do not ratchet on
+        with the limit's give), and it moves on only by more than a worm slack at a time (each move
+        costs a changeDynamics)."""
+        state = self._state
+        if stop is None:
+            stop = self._joint_high[joint] if sign > 0.0 else self._joint_low[joint]
+        current = state.window_high[joint] if sign > 0.0 else state.window_low[joint]
+        held = current if sign * (stop - current) > 0.0 else state.positions[joint]
+        if sign * (edge - held) <= self._slack:
+            edge = held
+        return edge if sign * (stop - edge) > 0.0 else stop
 
     def _palm_stop(self, inner: float) -> float:
         """Where the outer link's end meets the palm face (rad, outer joint) with the inner link at `inner`."""
@@ -682,6 +708,7 @@ class HandPlant:
                 omega = velocity / INNER_COUNTS_PER_RAD
                 # One motor turns both worms: a link against its stop (or the palm) stalls the whole finger.
                 palm = self._palm_stop(q[i2])
+                inner_high, inner_low, outer_high, outer_low = self._palm_stop_inner(q[i3]) if closing else None, None, palm, None
                 at_stop[f] = (q[i2] >= inner_closed or q[i3] >= (palm if palm < outer_closed else outer_closed)
                               ) if closing else q[i2] <= inner_open
                 if at_stop[f]:
@@ -705,10 +732,19 @@ class HandPlant:
                         partner_outer = sign * outer_target
                     inner_room = 3.0 * (partner_outer if partner_outer > 0.0 else 0.0) + (coupling_play - sign * ahead) / dt
                     outer_room = ((partner_inner if partner_inner > 0.0 else 0.0) + (coupling_play + sign * ahead) / dt) * _THIRD
+                    # A joint its partner holds back is held by the worms' teeth where the coupling's play
+                    # ends (a velocity target of zero alone lets the solver's residual creep it on, 2°/s
+                    # for an outer link beside an inner link stalled at full torque).
                     if sign * inner_target > inner_room:
                         inner_target = sign * inner_room
+                        if inner_room < self._held_back_speed:
+                            edge = self._coupled_edge(i2, 3.0 * q[i3] + sign * coupling_play, sign, inner_high)
+                            inner_high, inner_low = (edge, None) if closing else (None, edge)
                     if sign * outer_target > outer_room:
                         outer_target = sign * outer_room
+                        if outer_room < self._held_back_speed:
+                            edge = self._coupled_edge(i3, (q[i2] + sign * coupling_play) * _THIRD, sign, outer_high if closing else None)
+                            outer_high, outer_low = (edge, None) if closing else (palm, edge)
                     if sign * inner_target < 0.0:
                         inner_target = 0.0
                     if sign * outer_target < 0.0:
@@ -719,8 +755,9 @@ class HandPlant:
                 inner_force = capacity - inner_load / 3.0 if inner_load > 0.0 else capacity
                 outer_force = capacity - outer_load if outer_load > 0.0 else capacity
                 drive_worm(i2, inner_target, inner_force if inner_force > inner_floor else inner_floor, sign,
-                           self._palm_stop_inner(q[i3]) if closing else None)
-                drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign, palm)
+                           inner_high, inner_low)
+                drive_worm(i3, outer_target, 3.0 * (outer_force if outer_force > outer_floor else outer_floor), sign,
+                           outer_high, outer_low)
             else:
                 hold(i2)  # the inner link stays where the clutch let go (its load slipped)
                 palm = self._palm_stop(q[i2])

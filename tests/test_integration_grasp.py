@@ -14,6 +14,7 @@ import pybullet as p
 import pytest
 
 from bh8_gym import hand_urdf
+from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
 from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
@@ -199,6 +200,58 @@ def test_locked_fingers_do_not_drift_in_loop(tmp_path):
         assert fw.transact(b"FGET P\r") == before
     finally:
         fw.shutdown()
+
+
+def relative_position(plant: HandPlant, body: int) -> np.ndarray:
+    """`body`'s position in the wrist frame, metres."""
+    wrist_position, wrist_orientation = plant.wrist_pose()
+    inverse = p.invertTransform(wrist_position.tolist(), wrist_orientation.tolist())
+    return np.array(p.multiplyTransforms(inverse[0], inverse[1], *map(list, plant.object_pose(body)))[0])
+
+
+def test_a_finger_driven_on_in_loop_does_not_creep(tmp_path):
+    """§9.5 Equation 4 / SPEC §1: one motor turns both worms of an engaged finger, so a finger whose
+    motor is stalled turns neither link. A LOOP grasp driven on at LCV 100, gain 255 (full torque)
+    through the env's lift and a 2 s hold: no engaged finger's outer link runs ahead of the 3:1
+    coupling by more than the gears' play (0.05° here, 1° allowed), and the lifted cylinder stays put
+    in the hand. (Held back by a velocity target of zero alone, an outer link crept 6° ahead and the
+    cylinder slipped; over placements and shapes: benchmarks/bench_hold.py --mode loop.)"""
+    plant = HandPlant(seed=0)
+    fw = Firmware(plant=plant, store_dir=tmp_path, seed=0)
+    try:
+        interface = grasp_interface()
+        for line in (*interface.setup_commands, interface.baud_command):
+            command(fw, line)
+        cylinder = add_object(plant, ObjectSpec("cylinder", (0.04, 0.09), mass=0.1, friction=0.5), position=(0.01, 0.0, 0.045))
+        wrist_z = 0.09 + 0.02 + hand_urdf.KNUCKLE_HEIGHT + hand_urdf.PALM_TOP
+        plant.set_wrist_pose((0.0, 0.0, wrist_z), PALM_DOWN, teleport=True)
+        fw.run_for(0.1)
+        assert fw.transact(interface.loop_command.encode() + b"\r") == interface.loop_command.encode() + b"*"
+        block = interface.encode_action([(0 if motor == 4 else 100) if name == "LCV" else 255
+                                         for motor, name in interface.layout.control_fields])
+        leads = []
+
+        def cycles(seconds, lift=False):
+            start = fw.time
+            while fw.time - start < seconds:
+                if lift:
+                    s = min((fw.time - start) / seconds, 1.0)
+                    plant.set_wrist_pose((0.0, 0.0, wrist_z + 0.1 * s ** 3 * (10 - 15 * s + 6 * s * s)), PALM_DOWN)
+                fw.transact(block)
+                angles = np.degrees(plant.joint_angles())
+                leads.extend(angles[outer] - angles[inner] / 3.0 for finger, (inner, outer) in zip((1, 2, 3), ((1, 2), (4, 5), (6, 7)))
+                             if plant.clutch_engaged(finger))
+
+        cycles(0.8)
+        cycles(0.7, lift=True)
+        lifted = relative_position(plant, cylinder)
+        cycles(2.0)
+        assert max(leads) < 1.0
+        assert np.linalg.norm(relative_position(plant, cylinder) - lifted) < 0.5e-3
+        assert plant.object_pose(cylinder)[0][2] > 0.08  # lifted with the hand
+    finally:
+        fw.shutdown()
+        plant.close()
 
 
 def test_processing_time_is_a_per_instance_setting(tmp_path):
