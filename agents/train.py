@@ -205,20 +205,6 @@ def _check_config(config: dict) -> None:
             raise TrainingError(f"hyperparameters.{name}: {algorithm.__name__} has no such parameter")
 
 
-class _WorkerEnvFactory:
-    """An env factory for SubprocVecEnv workers that ignore STOP_SIGNALS: a Ctrl-C or a kill sent to
-    the whole process group then stops training through the main process (checkpoint, then it
-    closes the workers) instead of killing workers mid-step."""
-
-    def __init__(self, factory):
-        self.factory = factory
-
-    def __call__(self):
-        for signum in STOP_SIGNALS:
-            signal.signal(signum, signal.SIG_IGN)
-        return self.factory()
-
-
 class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
@@ -264,7 +250,7 @@ class Trainer:
 
     def _check_env_kwargs(self) -> None:
         """Build the training and evaluation envs once here, so that a typo in the config is an
-        error naming it rather than a SubprocVecEnv worker dying with a broken pipe."""
+        error naming it rather than an env worker process failing."""
         for table in ("env_kwargs", "eval_env_kwargs"):
             try:
                 make_env(self.config["env_id"], self.config[table]).close()
@@ -272,13 +258,17 @@ class Trainer:
                 raise TrainingError(f"{table}: {error}") from None
 
     def _vec_env(self):
-        from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+        from stable_baselines3.common.vec_env import DummyVecEnv
+
+        from bh8_gym.agents.vec_env import ShardedVecEnv
 
         factories = [EnvFactory(self.config["env_id"], self._training_env_kwargs, seed=None)
                      for _ in range(self.n_envs)]
         if self.n_envs == 1:
             return DummyVecEnv(factories)
-        return SubprocVecEnv([_WorkerEnvFactory(factory) for factory in factories])
+        # Workers ignore STOP_SIGNALS: a Ctrl-C or a kill sent to the whole process group then stops
+        # training through this process (checkpoint, then it closes the workers), not mid-step.
+        return ShardedVecEnv(factories, ignore_signals=STOP_SIGNALS)
 
     def _new_model(self, env):
         algorithm = _algorithm_class(self.config["algorithm"])
