@@ -453,6 +453,7 @@ class Trainer:
                 evaluation = EvaluationCallback(
                     self, state, eval_freq=int(eval_config.get("freq", 10_000)),
                     n_episodes=int(eval_config.get("episodes", 10)), eval_seed=int(eval_config.get("seed", 10_000)),
+                    ignore_signals=STOP_SIGNALS,
                 )
                 callbacks = [evaluation, RunCheckpointCallback(self, evaluation.state,
                                                                int(self.config["train"].get("checkpoint_freq", 10_000)))]
