@@ -1,12 +1,12 @@
 """Wall time and env steps per second of a short PPO run (bh8 train's code path) on all cores.
 
     python benchmarks/bench_training.py [--env BH8Grasp-v0] [--timesteps 20000] [--n-envs N]
-        [--config-hyperparameters] [--vec-env sharded|subproc]
+        [--n-steps 256] [--batch-size 64] [--config-hyperparameters] [--vec-env sharded|subproc]
 
 Measures the whole run: env start-up, env stepping and PPO updates (evaluation, checkpoints and
 the config's [pretrain] warm start off: the warm start is a fixed cost per run, measured in
-docs/benchmarks.md's row for the default config). By default the rollouts are short (n_steps 256,
-minibatches of 64) so that a few thousand steps hold several updates; --config-hyperparameters
+docs/benchmarks.md's row for the default config). By default the rollouts are short (--n-steps 256,
+--batch-size 64) so that a few thousand steps hold several updates; --config-hyperparameters
 keeps the config's own (the default config's throughput). torch runs one thread per process
 (Trainer sets it). --vec-env subproc runs the envs in SB3's SubprocVecEnv, one worker process per
 env, as bh8 train did before ShardedVecEnv (agents/vec_env.py): the same run, for comparison.
@@ -41,15 +41,16 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=os.cpu_count(),
                         help="parallel envs (default: the CPU count, here %(default)s)")
     parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env (default: %(default)s)")
+    parser.add_argument("--batch-size", type=int, default=64, help="PPO minibatch size (default: %(default)s)")
     parser.add_argument("--config-hyperparameters", action="store_true",
-                        help="the config's n_steps and batch_size instead of --n-steps and 64")
+                        help="the config's n_steps and batch_size instead of --n-steps and --batch-size")
     parser.add_argument("--vec-env", choices=("sharded", "subproc"), default="sharded",
                         help="where the envs run: bh8 train's ShardedVecEnv or SB3's SubprocVecEnv (default: %(default)s)")
     args = parser.parse_args()
 
     config = load_config(default_config_path("PPO", args.env))
     if not args.config_hyperparameters:
-        config["hyperparameters"].update(n_steps=args.n_steps, batch_size=64)
+        config["hyperparameters"].update(n_steps=args.n_steps, batch_size=args.batch_size)
     # evaluation and checkpoints out of the way: this measures training throughput
     config["eval"]["freq"] = 10 ** 12
     config["train"]["checkpoint_freq"] = 10 ** 12
