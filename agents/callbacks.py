@@ -43,9 +43,6 @@ class EvaluationCallback(BaseCallback):
             state["next_evaluation"] = eval_freq
 
     def _on_training_start(self) -> None:
-        if self.trainer.n_envs > 1 and self.n_episodes > 1:  # started now: ready by the first evaluation
-            self._worker = EvaluationWorker(self.trainer.config["env_id"], self.trainer.config["eval_env_kwargs"],
-                                            ignore_signals=self._ignore_signals)
         # A warm-started model ([pretrain]) is a candidate before RL changes it.
         if self.trainer.pretrain is not None and self.num_timesteps == 0 and self.state["best_success_rate"] is None:
             self.evaluate()
@@ -59,6 +56,9 @@ class EvaluationCallback(BaseCallback):
 
     def evaluate(self) -> dict:
         config = self.trainer.config
+        if self._worker is None and self.trainer.n_envs > 1 and self.n_episodes > 1:
+            # Started by the first evaluation: it builds its env while this process runs its first episodes.
+            self._worker = EvaluationWorker(config["env_id"], config["eval_env_kwargs"], ignore_signals=self._ignore_signals)
         if self._env is None:
             self._env = make_env(config["env_id"], config["eval_env_kwargs"])
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
