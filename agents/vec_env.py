@@ -2,12 +2,12 @@
 the first shard stepped in the training process itself.
 
 Why (docs/benchmarks.md, "Training"): SB3's `SubprocVecEnv` puts each env in a process of its own,
-so every vector step is one pipe round trip per env during which the training process sleeps,
-then the workers sleep while it computes the next actions. A round trip (two wake-ups) costs about
-as much as a grasp-env step, and more on a loaded machine, where each wake-up waits for a core. Here
-each worker process holds several envs and answers a step with one message, and the training
-process steps its own shard while the workers step theirs: on 2 cores with 2 envs, one env stepped
-here, one in a worker whose reply is usually waiting by the time this process looks.
+so every vector step is a pipe round trip per env (pickled actions out, pickled observations and
+infos back, two wake-ups) while the training process sleeps, and then the workers sleep while it
+computes the next actions: two grasp envs in SubprocVecEnv stepped fewer env steps per second in
+all than one env in one process. Here each worker process holds a shard of envs and answers a
+step with one message, and the training process steps its own shard meanwhile instead of waiting:
+on 2 cores with 2 envs, one env is stepped here and one in the single worker.
 
 Env i is the same env built by the same factory and seeded the same way as in `SubprocVecEnv`
 (`VecEnv.seed` gives env i seed + i), and each step goes through the same
@@ -105,6 +105,7 @@ class _Shard:
             env.close()
 
 
+# What a worker does for the training process: the `_Shard` methods of these names.
 COMMANDS = ("step", "reset", "spaces", "render", "env_method", "get_attr", "has_attr", "set_attr", "is_wrapped")
 
 
@@ -118,6 +119,7 @@ def _worker(remote, parent_remote, env_fns: CloudpickleWrapper, ignore_signals: 
         shard = _Shard(env_fns.var)
     except Exception:  # noqa: BLE001 - reported to the training process, which raises it
         remote.send(("error", traceback.format_exc()))
+        remote.close()
         return
     remote.send(("ok", None))
     while True:
@@ -130,6 +132,8 @@ def _worker(remote, parent_remote, env_fns: CloudpickleWrapper, ignore_signals: 
             remote.send(("ok", None))
             break
         try:
+            if command not in COMMANDS:
+                raise ValueError(f"unknown command {command!r}")
             remote.send(("ok", getattr(shard, command)(*args)))
         except Exception:  # noqa: BLE001 - as above
             remote.send(("error", traceback.format_exc()))
