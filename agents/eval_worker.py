@@ -86,8 +86,8 @@ class EvaluationWorker:
         work_remote.close()
 
     def run(self, model, env, n_episodes: int, seed: int) -> list:
-        """`run_episodes(predictor(model), env, n_episodes, seed)`: episodes seed ... seed + n/2 - 1
-        on `env` here, the rest in the worker at the same time."""
+        """`run_episodes(predictor(model), env, n_episodes, seed)`: the first half of the episodes
+        (rounded up) on `env` here, the rest in the worker at the same time; results in episode order."""
         here = (n_episodes + 1) // 2
         theirs = n_episodes - here
         if theirs:

@@ -411,7 +411,7 @@ class Trainer:
             TrainingProgressCallback,
         )
 
-        # One thread per process: with SubprocVecEnv on 2 cores this is the fastest (measured).
+        # One thread per process: with env worker processes on 2 cores this is the fastest (measured).
         torch.set_num_threads(1)
         # torch.distributions' argument checks only check: the same numbers, ~20 % less CPU per
         # policy forward (docs/benchmarks.md, "Training").
