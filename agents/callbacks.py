@@ -8,8 +8,8 @@ import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
-from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.eval_worker import EvaluationWorker, predictor
 from bh8_gym.agents.evaluate import percent, run_episodes, summarize
 from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
@@ -24,7 +24,8 @@ class EvaluationCallback(BaseCallback):
     against the same best.
     """
 
-    def __init__(self, trainer, state: dict, eval_freq: int, n_episodes: int, eval_seed: int):
+    def __init__(self, trainer, state: dict, eval_freq: int, n_episodes: int, eval_seed: int,
+                 ignore_signals: tuple = ()):
         super().__init__()
         if eval_freq < 1 or n_episodes < 1:
             raise ValueError(f"eval freq and episodes must be positive, got {eval_freq}, {n_episodes}")
@@ -34,6 +35,10 @@ class EvaluationCallback(BaseCallback):
         self.n_episodes = n_episodes
         self.eval_seed = eval_seed
         self._env = None
+        #: Half of each evaluation's episodes run in a worker process when training uses several
+        #: processes (agents/eval_worker.py; the same results); it ignores `ignore_signals`.
+        self._worker = None
+        self._ignore_signals = ignore_signals
         if state.get("next_evaluation", 0) <= 0:
             state["next_evaluation"] = eval_freq
 
@@ -51,12 +56,18 @@ class EvaluationCallback(BaseCallback):
 
     def evaluate(self) -> dict:
         config = self.trainer.config
+        if self._worker is None and self.trainer.n_envs > 1 and self.n_episodes > 1:
+            # Started by the first evaluation: it builds its env while this process runs its first episodes.
+            self._worker = EvaluationWorker(config["env_id"], self.trainer.evaluation_env_kwargs,
+                                            ignore_signals=self._ignore_signals)
         if self._env is None:
             self._env = make_env(config["env_id"], self.trainer.evaluation_env_kwargs)
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
-        policy = HostObservationModel(self.model) if host_observation_count(self.model) else self.model
-        results = run_episodes(policy, self._env, self.n_episodes, seed=self.eval_seed,
-                               progress=self.trainer.progress)
+        if self._worker is not None:
+            results = self._worker.run(self.model, self._env, self.n_episodes, self.eval_seed)
+        else:
+            results = run_episodes(predictor(self.model), self._env, self.n_episodes, seed=self.eval_seed,
+                                   progress=self.trainer.progress)
         summary = summarize(results)
         row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
         append_evaluation(self.trainer.out_dir, row)
@@ -78,6 +89,9 @@ class EvaluationCallback(BaseCallback):
         if self._env is not None:
             self._env.close()
             self._env = None
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
 
 def evaluation_line(row: dict, state: dict) -> str:

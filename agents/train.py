@@ -221,20 +221,6 @@ def _check_config(config: dict) -> None:
         raise TrainingError(str(error)) from None
 
 
-class _WorkerEnvFactory:
-    """An env factory for SubprocVecEnv workers that ignore STOP_SIGNALS: a Ctrl-C or a kill sent to
-    the whole process group then stops training through the main process (checkpoint, then it
-    closes the workers) instead of killing workers mid-step."""
-
-    def __init__(self, factory):
-        self.factory = factory
-
-    def __call__(self):
-        for signum in STOP_SIGNALS:
-            signal.signal(signum, signal.SIG_IGN)
-        return self.factory()
-
-
 class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
@@ -293,13 +279,17 @@ class Trainer:
         check_env_tables(self.config)
 
     def _vec_env(self):
-        from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+        from stable_baselines3.common.vec_env import DummyVecEnv
+
+        from bh8_gym.agents.vec_env import ShardedVecEnv
 
         factories = [EnvFactory(self.config["env_id"], self._training_env_kwargs, seed=None)
                      for _ in range(self.n_envs)]
         if self.n_envs == 1:
             return DummyVecEnv(factories)
-        return SubprocVecEnv([_WorkerEnvFactory(factory) for factory in factories])
+        # Workers ignore STOP_SIGNALS: a Ctrl-C or a kill sent to the whole process group then stops
+        # training through this process (checkpoint, then it closes the workers), not mid-step.
+        return ShardedVecEnv(factories, ignore_signals=STOP_SIGNALS)
 
     def _new_model(self, env):
         algorithm = _algorithm_class(self.config["algorithm"])
@@ -469,8 +459,11 @@ class Trainer:
             TrainingProgressCallback,
         )
 
-        # One thread per process: with SubprocVecEnv on 2 cores this is the fastest (measured).
+        # One thread per process: with env worker processes on 2 cores this is the fastest (measured).
         torch.set_num_threads(1)
+        # torch.distributions' argument checks only check: the same numbers, ~20 % less CPU per
+        # policy forward (docs/benchmarks.md, "Training").
+        torch.distributions.Distribution.set_default_validate_args(False)
         if total_timesteps is not None and total_timesteps < 1:
             raise ValueError(f"total_timesteps must be positive, got {total_timesteps}")
         self._finish_checkpoint()  # one a kill interrupted
@@ -514,6 +507,7 @@ class Trainer:
                 evaluation = EvaluationCallback(
                     self, state, eval_freq=int(eval_config.get("freq", 10_000)),
                     n_episodes=int(eval_config.get("episodes", 10)), eval_seed=int(eval_config.get("seed", 10_000)),
+                    ignore_signals=STOP_SIGNALS,
                 )
                 callbacks = [evaluation, RunCheckpointCallback(self, evaluation.state,
                                                                int(self.config["train"].get("checkpoint_freq", 10_000)))]

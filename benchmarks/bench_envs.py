@@ -186,11 +186,17 @@ def bench_panda_gym(steps: int, repeats: int) -> dict | None:
             "ratio_range": (rounds[0][3], rounds[-1][3])}
 
 
-def bench_vector(env_id: str, n_envs: int, steps: int, env_kwargs: dict) -> dict:
+def bench_vector(env_id: str, n_envs: int, steps: int, env_kwargs: dict, engine: str = "sharded") -> dict:
+    """Total env steps/s of `n_envs` envs stepped together: in bh8 train's ShardedVecEnv (the first
+    shard in this process, one worker process per further shard) or in SB3's SubprocVecEnv (one
+    worker process per env)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=SubprocVecEnv, wrapper_class=ContinuousActions,
+    from bh8_gym.agents.vec_env import ShardedVecEnv
+
+    vec_env_cls = {"sharded": ShardedVecEnv, "subproc": SubprocVecEnv}[engine]
+    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls, wrapper_class=ContinuousActions,
                        env_kwargs=env_kwargs)
     vec.reset()
     action = np.full((n_envs,) + vec.action_space.shape, 0.4, dtype=np.float32)
@@ -261,9 +267,16 @@ def main() -> None:
             f"{fmt('in_env_overhead_ratio', '.2f')}, of which its other PyBullet calls alone "
             f"{fmt('pybullet_calls_ratio', '.2f')}"
         )
-        vector = bench_vector(env_id, args.envs, max(args.steps // args.envs, 200), args.env_kwargs)
-        print(f"{env_id} {args.envs} SubprocVecEnv envs: {vector['steps_per_s']:7.0f} env steps/s total, "
-              f"peak RSS per worker {max(vector['worker_peak_mib']):.0f} MiB")
+        engines = {"sharded": "ShardedVecEnv (bh8 train's)", "subproc": "SB3's SubprocVecEnv"}
+        vectors = {engine: [] for engine in engines}
+        for _ in range(args.repeats):  # interleaved, as the single-process rounds
+            for engine, runs in vectors.items():
+                runs.append(bench_vector(env_id, args.envs, max(args.steps // args.envs, 200), args.env_kwargs, engine))
+        for engine, runs in vectors.items():
+            rates = sorted(run["steps_per_s"] for run in runs)
+            print(f"{env_id} {args.envs} envs in {engines[engine]}: {rates[len(rates) // 2]:.0f} "
+                  f"({rates[0]:.0f}-{rates[-1]:.0f}) env steps/s total, {len(runs[0]['worker_peak_mib'])} worker "
+                  f"processes, peak RSS per worker {max(max(run['worker_peak_mib']) for run in runs):.0f} MiB")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")
     panda = bench_panda_gym(args.steps, args.repeats)

@@ -1,10 +1,17 @@
 """Wall time and env steps per second of a short PPO run (bh8 train's code path) on all cores.
 
-    python benchmarks/bench_training.py [--env BH8FingerReach-v0] [--timesteps 4096] [--n-envs N]
+    python benchmarks/bench_training.py [--env BH8Grasp-v0] [--timesteps 20000] [--n-envs N]
+        [--n-steps 256] [--batch-size 64] [--config-hyperparameters] [--vec-env sharded|subproc] [--cpu]
 
 Measures the whole run: env start-up, env stepping and PPO updates (evaluation, checkpoints and
 the config's [pretrain] warm start off: the warm start is a fixed cost per run, measured in
-docs/benchmarks.md's row for the default config). torch runs one thread per process (Trainer sets it); envs run in SubprocVecEnv workers.
+docs/benchmarks.md's row for the default config). By default the rollouts are short (--n-steps 256,
+--batch-size 64) so that a few thousand steps hold several updates; --config-hyperparameters
+keeps the config's own (the default config's throughput). torch runs one thread per process
+(Trainer sets it). --vec-env subproc runs the envs in SB3's SubprocVecEnv, one worker process per
+env, as bh8 train did before ShardedVecEnv (agents/vec_env.py): the same run, for comparison.
+--cpu also prints where the CPU time of a vector step goes, per process (Linux /proc): on a
+machine with a free core per process the training process's share bounds the step rate.
 """
 from __future__ import annotations
 
@@ -14,7 +21,72 @@ import tempfile
 import time
 from pathlib import Path
 
+from bh8_gym.agents.env_factory import EnvFactory
 from bh8_gym.agents.train import Trainer, default_config_path, load_config
+
+
+class MeasuredTrainer(Trainer):
+    """bh8 train's run; with `subproc`, the envs in SubprocVecEnv workers. Keeps the vector env
+    (`vec`) and the CPU seconds its workers used from the first rollout to the end (`worker_cpu`)."""
+
+    subproc = False
+
+    def _vec_env(self):
+        from stable_baselines3.common.vec_env import SubprocVecEnv
+
+        if self.subproc and self.n_envs > 1:
+            self.vec = SubprocVecEnv([EnvFactory(self.config["env_id"], self._training_env_kwargs, seed=None)
+                                      for _ in range(self.n_envs)])
+        else:
+            self.vec = super()._vec_env()
+        close = self.vec.close
+
+        def close_after_reading_cpu():
+            self.worker_cpu = workers_cpu_seconds(self.vec) - getattr(self, "worker_cpu_start", 0.0)
+            close()
+
+        self.vec.close = close_after_reading_cpu
+        return self.vec
+
+
+def workers_cpu_seconds(vec) -> float:
+    """User + system CPU seconds of a vector env's worker processes so far (from /proc)."""
+    total = 0.0
+    for process in getattr(vec, "processes", []):
+        with open(f"/proc/{process.pid}/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
+def timing(trainer: MeasuredTrainer, seconds: dict):
+    """Wraps PPO's rollout collection and update to add their CPU time in this thread to `seconds`,
+    and the envs' share of the rollouts (ShardedVecEnv's shard in this process)."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents import vec_env
+
+    def timed(owner, name, key, before=None):
+        original = getattr(owner, name)
+
+        def wrapper(*args, **kwargs):
+            if before is not None:
+                before()
+            start = time.thread_time()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                seconds[key] += time.thread_time() - start
+
+        setattr(owner, name, wrapper)
+
+    def first_rollout():
+        if not hasattr(trainer, "worker_cpu_start"):
+            trainer.worker_cpu_start = workers_cpu_seconds(trainer.vec)
+
+    timed(PPO, "collect_rollouts", "rollouts", first_rollout)
+    timed(PPO, "train", "update")
+    timed(vec_env._Shard, "step", "own envs")
 
 
 def main() -> None:
@@ -25,22 +97,40 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=os.cpu_count(),
                         help="parallel envs (default: the CPU count, here %(default)s)")
     parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env (default: %(default)s)")
+    parser.add_argument("--batch-size", type=int, default=64, help="PPO minibatch size (default: %(default)s)")
+    parser.add_argument("--config-hyperparameters", action="store_true",
+                        help="the config's n_steps and batch_size instead of --n-steps and --batch-size")
+    parser.add_argument("--vec-env", choices=("sharded", "subproc"), default="sharded",
+                        help="where the envs run: bh8 train's ShardedVecEnv or SB3's SubprocVecEnv (default: %(default)s)")
+    parser.add_argument("--cpu", action="store_true", help="also print the CPU time per vector step, per process")
     args = parser.parse_args()
 
     config = load_config(default_config_path("PPO", args.env))
-    config["hyperparameters"].update(n_steps=args.n_steps, batch_size=64)
+    if not args.config_hyperparameters:
+        config["hyperparameters"].update(n_steps=args.n_steps, batch_size=args.batch_size)
     # evaluation and checkpoints out of the way: this measures training throughput
     config["eval"]["freq"] = 10 ** 12
     config["train"]["checkpoint_freq"] = 10 ** 12
     config.pop("pretrain", None)
+    seconds = {"rollouts": 0.0, "update": 0.0, "own envs": 0.0}
     with tempfile.TemporaryDirectory() as out:
-        trainer = Trainer(config, Path(out), n_envs=args.n_envs, seed=0, progress=False)
+        trainer = MeasuredTrainer(config, Path(out), n_envs=args.n_envs, seed=0, progress=False)
+        trainer.subproc = args.vec_env == "subproc"
+        if args.cpu:
+            timing(trainer, seconds)
         start = time.perf_counter()
         state = trainer.run(args.timesteps)
         wall = time.perf_counter() - start
     steps = state["num_timesteps"]
-    print(f"PPO on {args.env}, {args.n_envs} envs (SubprocVecEnv), cpu_count={os.cpu_count()}")
+    hyperparameters = config["hyperparameters"]
+    print(f"PPO on {args.env}, {args.n_envs} envs ({args.vec_env}), n_steps {hyperparameters['n_steps']}, "
+          f"batch_size {hyperparameters['batch_size']}, cpu_count={os.cpu_count()}")
     print(f"{steps} env steps in {wall:.1f} s wall (incl. env start-up): {steps / wall:.0f} env steps/s")
+    if args.cpu:
+        ms = 1e3 * args.n_envs / steps  # per vector step
+        print(f"CPU ms per vector step ({args.n_envs} env steps): training process {ms * seconds['rollouts']:.2f} "
+              f"collecting rollouts (of which stepping its own envs {ms * seconds['own envs']:.2f}) + "
+              f"{ms * seconds['update']:.2f} PPO update; worker processes {ms * trainer.worker_cpu:.2f} in all")
 
 
 if __name__ == "__main__":

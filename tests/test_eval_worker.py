@@ -1,0 +1,88 @@
+"""`EvaluationWorker` (agents/eval_worker.py): an evaluation split between this process and a
+worker gives the results of `run_episodes` in one process, in order; a worker that fails is a
+clear error and leaves no stale reply behind.
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.eval_worker import EvaluationWorker, EvaluationWorkerError, predictor
+from bh8_gym.agents.evaluate import run_episodes
+
+GRASP = "BH8Grasp-v0"
+
+
+@pytest.fixture(scope="module")
+def asymmetric_model(tmp_path_factory):
+    """A briefly trained grasp policy with the default config's asymmetric critic (its actor sees
+    host observations only, so the worker must pad them as this process does)."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+
+    config = load_config(default_config_path("PPO", GRASP))
+    config.pop("pretrain", None)
+    config["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
+    config["eval"]["freq"] = config["train"]["checkpoint_freq"] = 10 ** 9
+    out = tmp_path_factory.mktemp("run")
+    Trainer(config, out, n_envs=1, seed=0, progress=False).run(64)
+    return PPO.load(out / "final_model.zip", device="cpu"), config["eval_env_kwargs"]
+
+
+def test_a_split_evaluation_gives_the_one_process_results_in_order(asymmetric_model):
+    model, env_kwargs = asymmetric_model
+    expected = run_episodes(predictor(model), make_env(GRASP, env_kwargs), 3, seed=10_000)
+    worker = EvaluationWorker(GRASP, env_kwargs)
+    try:
+        env = make_env(GRASP, env_kwargs)
+        assert worker.run(model, env, 3, 10_000) == expected  # episodes 10000-10001 here, 10002 there
+        assert worker.run(model, env, 3, 10_000) == expected  # and again: the same episodes
+        assert worker.process.pid != os.getpid() and worker.process.is_alive()
+    finally:
+        worker.close()
+    assert not worker.process.is_alive()
+
+
+def test_a_worker_that_cannot_build_its_env_is_an_error_naming_why_and_the_next_run_too(asymmetric_model):
+    model, env_kwargs = asymmetric_model
+    worker = EvaluationWorker(GRASP, {**env_kwargs, "no_such_keyword": 1})
+    try:
+        env = make_env(GRASP, env_kwargs)
+        for _ in range(2):  # the failed reply was read: the next run gets its own
+            with pytest.raises(EvaluationWorkerError, match="(?s)evaluation worker failed.*no_such_keyword"):
+                worker.run(model, env, 2, 10_000)
+    finally:
+        worker.close()
+
+
+def test_training_with_several_envs_evaluates_in_two_processes_with_the_one_process_figures(tmp_path, monkeypatch):
+    """bh8 train's evaluation row, with half the episodes in the worker, is the one `run_episodes`
+    gives for the evaluated model in one process."""
+    from stable_baselines3 import PPO
+
+    from bh8_gym.agents import eval_worker
+    from bh8_gym.agents.evaluate import summarize
+    from bh8_gym.agents.run_files import read_evaluations
+    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+
+    split_runs = []
+    original_run = eval_worker.EvaluationWorker.run
+    monkeypatch.setattr(eval_worker.EvaluationWorker, "run",
+                        lambda self, *args: split_runs.append(args[2]) or original_run(self, *args))
+    config = load_config(default_config_path("PPO", "BH8FingerReach-v0"))
+    config["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
+    config["policy_kwargs"]["net_arch"] = [16, 16]
+    config["eval"].update(freq=128, episodes=3)
+    config["train"]["checkpoint_freq"] = 10 ** 9
+    out = tmp_path / "run"
+    Trainer(config, out, n_envs=2, seed=0, progress=False).run(128)
+    assert split_runs == [3]
+    [row] = read_evaluations(out)
+    model = PPO.load(out / "best_model.zip", device="cpu")  # the model that evaluation saw
+    summary = summarize(run_episodes(predictor(model), make_env(config["env_id"], config["eval_env_kwargs"]), 3,
+                                     seed=int(config["eval"]["seed"])))
+    assert row["success_rate"] == summary["success_rate"]
+    assert row["mean_return"] == pytest.approx(summary["mean_return"], rel=1e-12)
