@@ -687,7 +687,7 @@ def test_a_squeeze_past_the_safety_envelope_ends_the_episode_as_deploy_would():
     def run(**kwargs):
         env = gym.make("BH8Grasp-v0", object_set="primitives-train", randomize=False, **kwargs).unwrapped
         try:
-            env.reset(seed=1)
+            env.reset(seed=0)
             steps = 0
             while True:
                 _, reward, terminated, truncated, info = env.step(squeeze)

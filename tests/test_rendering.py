@@ -38,7 +38,7 @@ def test_bh8_render_writes_a_png_of_the_hand_closed_on_an_object(tmp_path, capsy
     (["--spread", "200"], "--spread must be 0..180"),
     (["--object", "teapot:3"], "teapot"),
     (["--width", "0"], "--width and --height must be 16..4096"),
-    (["--object", "{tmp}/bad.urdf"], "cannot load the urdf file"),
+    (["--object", "{tmp}/bad.urdf"], "is not well-formed XML"),
 ])
 def test_bh8_render_refuses_bad_arguments_with_exit_code_2(tmp_path, capsys, arguments, message):
     """Errors on stderr, one line, no traceback, nothing written."""
