@@ -140,7 +140,8 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     if policy.action_dim != len(fields):
         raise DeployError(f"the policy gives {policy.action_dim} actions but the env's control block has "
                           f"{len(fields)} fields ({', '.join(f'{name} {motor}' for motor, name in fields)})")
-    first = interface.observation_from_feedback([0] * len(interface.layout.feedback_fields), [0] * len(fields), 0.0)
+    first = interface.observation_from_feedback([0] * len(interface.layout.feedback_fields), [0] * len(fields), 0.0,
+                                              interface.new_history())
     check_policy_runs(policy, [first, np.zeros(host_size, dtype=np.float32)], interface.action_space.shape)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 ENV_ID = "BH8Grasp-v0"
-SEED = 5
+SEED = 9
 # Deploy's limits are its defaults, the env's safety envelope (bh8_gym.safety): it clamps nothing
 # the env's action space allows and stops where the env's episode ends with a safety stop.
 ON_EXIT = ["--on-exit", "none"]
@@ -127,7 +127,7 @@ def _deploy_through_served_env(policy_path, env_kwargs: dict, log_path, extra: l
 @pytest.mark.parametrize("randomize", [False, True], ids=["nominal", "randomized"])
 def test_deploy_on_served_env_is_byte_identical_to_in_process(policy_path, tmp_path, randomize):
     """Contract 2 + SPEC.md §6: every control and feedback block of `bh8 deploy --clock cycles`
-    against `bh8 serve --env BH8Grasp-v0 --seed 5` equals the in-process episode's, cycle by cycle
+    against `bh8 serve --env BH8Grasp-v0 --seed 9` equals the in-process episode's, cycle by cycle
     (the "A" block and every policy cycle; deploy's extra stop block after the episode aside).
     This policy squeezes past the safety envelope's strain limit: deploy, with its default limits,
     stops the hand (exit 3) after the very block at which the env's episode ends with its safety stop."""
