@@ -18,6 +18,7 @@ from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
 from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
+from bh8_gym.simulator import build_firmware, shutdown_firmware
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
 PALM_UP = (0.0, 0.0, 0.0, 1.0)
@@ -322,8 +323,6 @@ def test_a_close_after_a_breakaway_and_an_open_breaks_away_only_at_its_obstacle(
     once it has turned the other way, so a finger accelerating from the open stop is not taken for
     one held back (F3 stopped at P = 9). The same hand and box as the pty test in
     test_virtual_serial.py."""
-    from bh8_gym.simulator import build_firmware, shutdown_firmware
-
     fw = build_firmware(tmp_path, objects=["box:0.06x0.10x0.06;mass=10"])
     try:
         command(fw, "HI")
