@@ -804,9 +804,13 @@ class HandPlant:
                 closing_peak = inner_speed
             elif -inner_speed > opening_peak:
                 opening_peak = -inner_speed
-            closing_peaks[f], opening_peaks[f] = closing_peak, opening_peak
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
+            if velocity < 0.0 and drive_on[f]:
+                # A rotor driven open keeps no closing speed: the next close's impacts lose only what
+                # that close reached (a remembered faster close made its start look held back).
+                closing_peak = 0.0
+            closing_peaks[f], opening_peaks[f] = closing_peak, opening_peak
             if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
                 motor_torques[f] = 0.0
                 continue

@@ -18,6 +18,7 @@ from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
 from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant
+from bh8_gym.simulator import build_firmware, shutdown_firmware
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
 PALM_UP = (0.0, 0.0, 0.0, 1.0)
@@ -312,3 +313,29 @@ def test_bs_stops_a_finger_at_its_breakaway(bars_fw):
     assert abs(position[2] - breakaway[2]) < 150
     assert position[0] > breakaway[0] + 2000 and position[1] > breakaway[1] + 2000
     assert fw.plant.breakaway_position(3) / 125.0 == pytest.approx(np.degrees(fw.plant.joint_angles()[6]), abs=2.0)
+
+
+def test_a_close_after_a_breakaway_and_an_open_breaks_away_only_at_its_obstacle(tmp_path):
+    """SPEC.md §3.1 (BS: stop a finger "as soon as breakaway is detected"), manual §5.3.2 (BD, BP)
+    and §9.3.1 (opening re-engages the clutch): after a GC that breaks away on a box and a GO, a GC
+    with BS 1 stops each finger where its inner link meets the box again (P = BP, within 500 counts
+    of the first breakaway), not at its start: the rotor's closing speed from the first GC is gone
+    once it has turned the other way, so a finger accelerating from the open stop is not taken for
+    one held back (F3 stopped at P = 9). The same hand and box as the pty test in
+    test_virtual_serial.py."""
+    fw = build_firmware(tmp_path, objects=["box:0.06x0.10x0.06;mass=10"])
+    try:
+        command(fw, "HI")
+        command(fw, "GC")
+        detected, first, _ = fget(fw, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        command(fw, "GO")
+        assert fget(fw, "GFGET BD BP") == [[0, 0, 0], [0, 0, 0]]
+        command(fw, "GFSET BS 1 BDAT 250")
+        command(fw, "GC")
+        detected, stopped_at, position = fget(fw, "GFGET BD BP P")
+        assert detected == [1, 1, 1]
+        for bp, p, before in zip(stopped_at, position, first):
+            assert abs(p - bp) < 150 and abs(bp - before) < 500, (stopped_at, position, first)
+    finally:
+        shutdown_firmware(fw)
