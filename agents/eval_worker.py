@@ -71,6 +71,17 @@ def _serve(remote, env_id: str, env_kwargs: dict, ignore_signals: tuple) -> None
     remote.close()
 
 
+def _without_gradients(policy):
+    """`policy` with the action distribution of its last forward pass dropped: after a pass with
+    gradients (behaviour cloning, a PPO update) it holds tensors that are not leaves of the graph,
+    which torch refuses to send to another process; the next forward pass rebuilds it."""
+    for holder in (policy, getattr(policy, "actor", None)):
+        distribution = getattr(holder, "action_dist", None)
+        if distribution is not None and hasattr(distribution, "distribution"):
+            distribution.distribution = None
+    return policy
+
+
 class EvaluationWorker:
     """A process that runs episodes of `env_id` (`make_env(env_id, env_kwargs)`) with a policy sent
     to it; `run` splits an evaluation between it and this process."""
@@ -92,7 +103,7 @@ class EvaluationWorker:
         theirs = n_episodes - here
         if theirs:
             try:
-                self._remote.send((model.policy, theirs, seed + here))
+                self._remote.send((_without_gradients(model.policy), theirs, seed + here))
             except (BrokenPipeError, ConnectionResetError):
                 raise self._exited() from None
         try:

@@ -46,6 +46,25 @@ def test_a_split_evaluation_gives_the_one_process_results_in_order(asymmetric_mo
     assert not worker.process.is_alive()
 
 
+def test_a_policy_just_trained_with_gradients_is_sent_to_the_worker(asymmetric_model):
+    """A forward pass with gradients (behaviour cloning before the first evaluation does one) leaves
+    the policy's action distribution holding non-leaf tensors, which torch refuses to pickle; the
+    worker still gets the policy and gives the one-process results."""
+    import torch
+
+    model, env_kwargs = asymmetric_model
+    env = make_env(GRASP, env_kwargs)
+    expected = run_episodes(predictor(model), env, 2, seed=10_000)
+    observations = torch.zeros((4, *model.observation_space.shape))
+    model.policy.evaluate_actions(observations, torch.zeros((4, *model.action_space.shape)))
+    assert model.policy.action_dist.distribution.mean.requires_grad
+    worker = EvaluationWorker(GRASP, env_kwargs)
+    try:
+        assert worker.run(model, env, 2, 10_000) == expected
+    finally:
+        worker.close()
+
+
 def test_a_worker_that_cannot_build_its_env_is_an_error_naming_why_and_the_next_run_too(asymmetric_model):
     model, env_kwargs = asymmetric_model
     worker = EvaluationWorker(GRASP, {**env_kwargs, "no_such_keyword": 1})
