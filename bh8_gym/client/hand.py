@@ -35,6 +35,16 @@ DEFAULT_TIMEOUT_S = 2.0
 DEFAULT_MOTION_TIMEOUT_S = 30.0
 
 
+def _of_line(name: str, doc: str) -> property:
+    """A read-only property showing attribute `name` of the client's `SerialLine`."""
+    return property(lambda hand: getattr(hand._line, name), doc=doc)
+
+
+def _latest_block(name: str, doc: str) -> property:
+    """A property reading `name` of the client's latest RealTime session (it outlives the LOOP)."""
+    return property(lambda hand: getattr(hand._session, name) if hand._session is not None else b"", doc=doc)
+
+
 class BarrettHand(SupervisoryCommands):
     """A BarrettHand on a serial port (manual §5, §6; SPEC.md §2, §5).
 
@@ -102,25 +112,10 @@ class BarrettHand(SupervisoryCommands):
         mode = "RealTime" if self.in_loop else "supervisory"
         return f"BarrettHand({self.port_name!r}, baudrate={self.baudrate}, {mode})"
 
-    @property
-    def port(self):
-        """The underlying pyserial object."""
-        return self._line.port
-
-    @property
-    def port_name(self) -> str:
-        """The port name or URL this client talks through."""
-        return self._line.name
-
-    @property
-    def baudrate(self) -> int:
-        """The host's rate, bits per second (`set_baud` changes it with the hand's)."""
-        return self._line.baudrate
-
-    @property
-    def timeout(self) -> float:
-        """The budget of a non-motion reply and the longest silence inside one, seconds."""
-        return self._line.timeout
+    port = _of_line("port", "The underlying pyserial object.")
+    port_name = _of_line("name", "The port name or URL this client talks through.")
+    baudrate = _of_line("baudrate", "The host's rate, bits per second (`set_baud` changes it with the hand's).")
+    timeout = _of_line("timeout", "The budget of a non-motion reply and the longest silence inside one, seconds.")
 
     @property
     def in_loop(self) -> bool:
@@ -132,15 +127,9 @@ class BarrettHand(SupervisoryCommands):
         """The RealTime block layout in use, None in supervisory mode."""
         return self._session.layout if self.in_loop else None
 
-    @property
-    def last_control_block(self) -> bytes:
-        """The latest RealTime control block sent (b"" before any)."""
-        return self._session.last_control_block if self._session is not None else b""
-
-    @property
-    def last_feedback_block(self) -> bytes:
-        """The latest RealTime reply received, b"*" included (b"" before any)."""
-        return self._session.last_feedback_block if self._session is not None else b""
+    last_control_block = _latest_block("last_control_block", "The latest RealTime control block sent (b\"\" before any).")
+    last_feedback_block = _latest_block("last_feedback_block",
+                                        "The latest RealTime reply received, b\"*\" included (b\"\" before any).")
 
     @property
     def firmware(self) -> str:

@@ -132,14 +132,9 @@ class RealTimeSession:
         if not self.active:
             raise RuntimeError("not in RealTime mode (a RealTime error or time-out ends it); call start_loop()")
 
-    def update(
-        self,
-        velocities: Sequence[int] | None = None,
-        gains: Sequence[int] | None = None,
-        header: bytes | str = b"C",
-        torques: Sequence[int] | None = None,
-    ) -> LoopFeedback | None:
-        """One RealTime cycle (`BarrettHand.update`)."""
+    def update(self, velocities: Sequence[int] | None, gains: Sequence[int] | None, header: bytes | str,
+               torques: Sequence[int] | None) -> LoopFeedback | None:
+        """One RealTime cycle (`BarrettHand.update` says what the arguments are)."""
         self._check_active()
         layout = self.layout
         code = _HEADERS.get(header)

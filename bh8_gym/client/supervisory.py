@@ -147,7 +147,9 @@ class SupervisoryCommands:
 
     # -- movement (§5.2.1) -------------------------------------------------------------------
 
-    def _motion(self, motors, verb: str, argument: int | None = None) -> None:
+    def _motion(self, motors, verb: str, argument: int | None = None, what: str = "counts") -> None:
+        if argument is not None:
+            _check_int(what, argument, 0, 20000)  # §5.2.1
         prefix, _ = parse_motors(motors)
         self._checked(f"{prefix}{verb}" if argument is None else f"{prefix}{verb} {argument}")
 
@@ -165,20 +167,14 @@ class SupervisoryCommands:
 
     def move(self, position: int | None = None, motors="GS") -> None:
         """M: move to `position` counts (0..20000, §5.2.1), or to DP when None."""
-        if position is not None:
-            _check_int("position", position, 0, 20000)
-        self._motion(motors, "M", position)
+        self._motion(motors, "M", position, "position")
 
     def step_open(self, counts: int | None = None, motors="GS") -> None:
         """IO: open by `counts` (0..20000), or by DS when None."""
-        if counts is not None:
-            _check_int("counts", counts, 0, 20000)
         self._motion(motors, "IO", counts)
 
     def step_close(self, counts: int | None = None, motors="GS") -> None:
         """IC: close by `counts` (0..20000), or by DS when None."""
-        if counts is not None:
-            _check_int("counts", counts, 0, 20000)
         self._motion(motors, "IC", counts)
 
     def home(self, motors="GS") -> None:
