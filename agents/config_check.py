@@ -8,7 +8,7 @@ The tables (`KEYS`, one row per key): the top level, [train], [eval], [hyperpara
 algorithm, [policy_kwargs], [pretrain], and the env keywords bh8-gym's environments take as plain
 values (`ENV_KEYWORDS`; the env checks its nested settings tables itself when it is built,
 `check_env_tables`). Everywhere a number must be finite and nesting is at most MAX_DEPTH deep.
-[sweep] is bh8 sweep's (agents/sweep_space.py checks it).
+[sweep] is bh8 sweep's (agents/sweep/space.py checks it).
 
 The bounds are what one machine or cluster can train (a rollout or replay buffer past them does
 not fit in memory; a run past MAX_TIMESTEPS does not end) and what the algorithms define (gamma in

@@ -18,7 +18,7 @@ SUBCOMMANDS = {
     "term": ("bh8_gym.commands.term", "interactive GCL terminal for a real or simulated hand"),
     "render": ("bh8_gym.commands.render", "render the simulated hand to a PNG"),
     "train": ("bh8_gym.agents.train", "train a grasp policy (PPO or SAC)"),
-    "sweep": ("bh8_gym.agents.sweep", "train seeds and hyperparameters as Ray Tune trials, locally or on a cluster"),
+    "sweep": ("bh8_gym.agents.sweep.command", "train seeds and hyperparameters as Ray Tune trials, locally or on a cluster"),
     "eval": ("bh8_gym.agents.evaluate", "evaluate a policy or a scripted baseline"),
     "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),
     "deploy": ("bh8_gym.agents.deploy", "run a policy closed-loop on a hand over a serial port"),

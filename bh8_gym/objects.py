@@ -30,8 +30,9 @@ naming it, before any physics runs.
 Loading: `ObjectLoader` (the environments) caches collision and visual shapes by
 `ObjectSpec.shape_key`, so an object seen before costs one `createMultiBody` (about 0.2 ms) instead
 of a file load (1-8 ms); PyBullet never frees a shape, so `shapes_created` counts them (the
-environments build a fresh world past `envs.base.WORLD_SHAPE_LIMIT`). `add_object` places one
-object in a plant's world by hand (`--object`, tests, benchmarks): it may be fixed, its friction
+environments build a fresh world past `envs.base.WORLD_SHAPE_LIMIT`). `ObjectLoader.create` is the
+one way a body is made; `add_object` uses it to place one object in a plant's world by hand
+(`--object`, tests, benchmarks): it may be fixed, its friction
 defaults to the plant's `object_friction`, and each link gets rolling and spinning friction so a
 ball on the palm comes to rest. The environments' loader keeps PyBullet's defaults there, as their
 trained policies and recorded trajectories have always had them.
@@ -43,7 +44,7 @@ import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -370,13 +371,18 @@ class ObjectLoader:
             raise
         return body
 
-    def create(self, spec: ObjectSpec, position: Sequence[float], orientation: Sequence[float]) -> int:
-        """A body for `spec` at a pose (base frame = the shape's centre for primitives and meshes)."""
+    def create(self, spec: ObjectSpec, position: Sequence[float], orientation: Sequence[float],
+               fixed: bool = False) -> int:
+        """A body for `spec` at a pose (base frame = the shape's centre for primitives and meshes):
+        the one way an object enters a world. `fixed` makes it immovable (mass 0, a URDF's base
+        fixed). A URDF gets `spec.mass` on its base if given; `spec.friction`, if given, is the
+        base's lateral friction."""
         if spec.kind == "urdf":
-            body = self._load_urdf(spec, position, orientation)
+            body = self._load_urdf(spec, position, orientation, fixed=fixed)
         else:
             collision, visual = self._shapes_for(spec)
-            body = p.createMultiBody(spec.mass, collision, visual, position, orientation, physicsClientId=self.client)
+            body = p.createMultiBody(0.0 if fixed else spec.mass, collision, visual, position, orientation,
+                                     physicsClientId=self.client)
         dynamics = {}
         if spec.mass is not None and spec.kind == "urdf":
             dynamics["mass"] = spec.mass
@@ -397,15 +403,11 @@ def add_object(plant: HandPlant, spec: ObjectSpec, position=(0.0, 0.0, 0.1), ori
     `fixed` makes it immovable (mass 0). A URDF keeps its own masses. ObjectError for a bad pose or
     file, before PyBullet sees it."""
     position, orientation = check_pose(position, orientation)
-    loader = ObjectLoader(plant.client)
     if spec.kind in FILE_KINDS:
         _existing_file(spec)
     if spec.kind == "urdf":
-        body = loader._load_urdf(spec, position, orientation, fixed=fixed)
-    else:
-        collision, visual = loader._shapes_for(spec)
-        body = p.createMultiBody(0.0 if fixed else spec.mass, collision, visual, position, orientation,
-                                 physicsClientId=plant.client)
+        spec = replace(spec, mass=None)  # placed by hand, a URDF keeps its own masses
+    body = ObjectLoader(plant.client).create(spec, position, orientation, fixed=fixed)
     friction = plant.params.object_friction if spec.friction is None else spec.friction
     for link in range(-1, p.getNumJoints(body, physicsClientId=plant.client)):
         p.changeDynamics(body, link, lateralFriction=friction, rollingFriction=PLACED_ROLLING_FRICTION,

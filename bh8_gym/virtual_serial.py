@@ -25,7 +25,8 @@ ahead of what the firmware has consumed. The rest waits in the pty, whose writer
 a host's writes block on a real serial line: a flood of RealTime blocks cannot grow the server.
 
 A client may close and reopen the device without losing the hand's state. The device is a port:
-one line, one client at a time, and every open starts a clean session.
+one line, one client at a time, and every open starts a clean session (`PortClients`, the part of
+`PtyServer` that keeps its ptys and clients).
 - Fresh: a closed port receives nothing, and nothing a client left unread (the reply to a ^C sent
   just before closing, a prompt it stopped reading) reaches the next open, however fast it follows
   (Barrett's C++ API closes and reopens at once to discard buffers when it changes the baud rate).
@@ -404,7 +405,160 @@ class _Stopped(Exception):
     """Raised by the signal handler to abandon a firmware run in progress."""
 
 
-class PtyServer:
+class PortClients:
+    """The device as a serial port, a part of `PtyServer` (a mixin on its ptys, poller and
+    pending input): one fresh pty behind the device's symlink, at most one session, and what
+    becomes of every pty a client opens (served, a closed port's, or refused; module docstring)."""
+
+    def _add_pty(self) -> _Pty:
+        pty = _Pty()
+        self._ptys.append(pty)
+        if pty.watched:
+            self._poller.register(pty.watch.fd, select.POLLIN)
+        else:
+            self._poller.register(pty.leader, select.POLLIN)
+            pty.polled_events = select.POLLIN
+        return pty
+
+    def _renew_fresh_pty(self) -> None:
+        """Point the device's symlink at a new pty (atomically: rename in the private directory),
+        so the next open starts empty whatever the last client leaves unread. On failure (no pty
+        or inotify instance left, no room) the device still leads to the last pty (mode 000: an
+        open fails with EACCES) and `_wait` retries."""
+        try:
+            fresh = _Pty()
+        except OSError as error:
+            self._note(f"cannot make a new pty for the next client ({error}); retrying", once=False)
+            return
+        if not fresh.watched:
+            fresh.close()
+            self._note("cannot watch a new pty for the next client (no inotify instance left); retrying", once=False)
+            return
+        try:
+            temporary = os.path.join(self._link_dir, f".{_DEVICE_NAME}.new")
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(temporary)
+            os.symlink(fresh.device, temporary)
+            os.replace(temporary, self.device)
+        except OSError as error:
+            fresh.close()
+            self._note(f"cannot point {self.device} at a new pty ({error}); retrying", once=False)
+            return
+        self._ptys.append(fresh)
+        self._poller.register(fresh.watch.fd, select.POLLIN)
+        self._fresh = fresh
+
+    def _accept(self, pty: _Pty) -> None:
+        """The pty of the one client served from now on; its watch now tells only of another open."""
+        pty.watch.watch_for(_OpenWatch.IN_OPEN)
+        pty.accepted_opens = max(pty.history.opens, 1)  # 0: its client's own open is still to come
+        self._poller.register(pty.leader, select.POLLIN)
+        pty.polled_events = select.POLLIN
+        self._session = pty
+
+    def _end_session(self) -> None:
+        """The session's client closed the device. What it wrote still reaches the hand (as bytes
+        sent on a line do), the replies go nowhere, and what the pty held for a reader goes with it."""
+        pty, self._session = self._session, None
+        self._pending_input += pty.waiting
+        self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
+        self._remove_pty(pty)
+
+    def _orphan(self, pty: _Pty) -> None:
+        """A pty whose clients opened and closed it before the server looked: a closed port's
+        client, whose bytes reach the hand and whose replies go nowhere."""
+        self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
+        self._remove_pty(pty)
+
+    def _refuse(self, pty: _Pty, why: str) -> None:
+        """Hang the pty up unread: its clients see the port go (EOF, EIO), nothing they wrote
+        reaches the hand and nothing reaches them."""
+        self._remove_pty(pty)
+        self._note(why)
+
+    def _remove_pty(self, pty: _Pty) -> None:
+        for fd in (pty.leader, pty.watch.fd if pty.watch is not None else -1):
+            try:
+                self._poller.unregister(fd)
+            except (KeyError, ValueError):
+                pass
+        pty.close()
+        self._ptys.remove(pty)
+        if self._speaker is pty:
+            self._speaker = None
+
+    def _note(self, message: str, once: bool = True) -> None:
+        """One line on stderr (each message once, unless `once` is False)."""
+        if once:
+            if message in self._noted:
+                return
+            self._noted.add(message)
+        print(f"bh8 serve: {message}", file=sys.stderr, flush=True)
+
+    def _follow_clients(self) -> None:
+        """End the session whose client closed the device (or hang it up if a second client got
+        into its pty), and look at the fresh pty: once a client has opened it, put a new pty behind
+        the device, close this one to further opens (mode 000), and serve it only if it is the one
+        client of a free port. Otherwise hang it up unread (a second client while the port is in
+        use, or clients that share the pty because they opened it before the server moved the
+        device on: the events or the descriptor count tell), or, if its clients have all closed it
+        again, pass what they wrote to the hand."""
+        if self._link_dir is None:
+            return  # one pty that every client shares (no inotify)
+        session = self._session
+        if session is not None:
+            session.look()
+            if not session.held():
+                self._end_session()
+            elif session.history.opens > session.accepted_opens:
+                # Another open since it became the session: root's, whom mode 000 does not stop.
+                self._session = None
+                self._refuse(session, _SHARED)
+        fresh = self._fresh
+        if fresh is None:
+            self._renew_fresh_pty()
+            return
+        fresh.look()
+        if not (fresh.history.opens or fresh.history.closes or fresh.held()):
+            return
+        self._fresh = None
+        self._renew_fresh_pty()  # first: a client that finds the device now gets the new pty
+        fresh.close_to_others()
+        fresh.look()  # what happened before the mode took
+        # Looked at after the mode change: the session's client may have closed and reopened since.
+        if self._session is not None and not self._session.held():
+            self._end_session()
+        self._settle(fresh)
+
+    def _settle(self, pty: _Pty) -> None:
+        """What a pty that clients have opened becomes: the session if one client holds it and the
+        port was free; a closed port's pty if they have all gone; else refused."""
+        history = pty.history
+        if not pty.held():
+            if self._session is None:
+                self._orphan(pty)
+            else:
+                self._refuse(pty, _IN_USE)
+            return
+        if self._session is not None:
+            self._refuse(pty, _IN_USE)
+            return
+        if history.closed_since_open or _holders(pty) > 1:
+            self._refuse(pty, _SHARED)
+            return
+        if history.written_before_open:
+            # Its client opened it after others had opened, written and closed it (before the server
+            # looked): their bytes come first in the pty. They are all theirs unless it wrote too.
+            earlier = pty.read(_PTY_BUFFER_BYTES)
+            pty.look()
+            if history.written_since_open or history.closed_since_open:
+                self._refuse(pty, _SHARED)
+                return
+            self._pending_input += earlier[:max(0, INPUT_BUFFER_BYTES - len(self._pending_input))]
+        self._accept(pty)
+
+
+class PtyServer(PortClients):
     """Serves one `Firmware` on a new pty until `stop()`; `device` is the follower's path."""
 
     def __init__(self, firmware, realtime: bool = False, link: str | os.PathLike | None = None,
@@ -519,93 +673,6 @@ class PtyServer:
         self._link_identity = (info.st_dev, info.st_ino)
         self.link = path
 
-    # -- the ptys: one fresh behind the device, at most one session ---------------------------
-
-    def _add_pty(self) -> _Pty:
-        pty = _Pty()
-        self._ptys.append(pty)
-        if pty.watched:
-            self._poller.register(pty.watch.fd, select.POLLIN)
-        else:
-            self._poller.register(pty.leader, select.POLLIN)
-            pty.polled_events = select.POLLIN
-        return pty
-
-    def _renew_fresh_pty(self) -> None:
-        """Point the device's symlink at a new pty (atomically: rename in the private directory),
-        so the next open starts empty whatever the last client leaves unread. On failure (no pty
-        or inotify instance left, no room) the device still leads to the last pty (mode 000: an
-        open fails with EACCES) and `_wait` retries."""
-        try:
-            fresh = _Pty()
-        except OSError as error:
-            self._note(f"cannot make a new pty for the next client ({error}); retrying", once=False)
-            return
-        if not fresh.watched:
-            fresh.close()
-            self._note("cannot watch a new pty for the next client (no inotify instance left); retrying", once=False)
-            return
-        try:
-            temporary = os.path.join(self._link_dir, f".{_DEVICE_NAME}.new")
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(temporary)
-            os.symlink(fresh.device, temporary)
-            os.replace(temporary, self.device)
-        except OSError as error:
-            fresh.close()
-            self._note(f"cannot point {self.device} at a new pty ({error}); retrying", once=False)
-            return
-        self._ptys.append(fresh)
-        self._poller.register(fresh.watch.fd, select.POLLIN)
-        self._fresh = fresh
-
-    def _accept(self, pty: _Pty) -> None:
-        """The pty of the one client served from now on; its watch now tells only of another open."""
-        pty.watch.watch_for(_OpenWatch.IN_OPEN)
-        pty.accepted_opens = max(pty.history.opens, 1)  # 0: its client's own open is still to come
-        self._poller.register(pty.leader, select.POLLIN)
-        pty.polled_events = select.POLLIN
-        self._session = pty
-
-    def _end_session(self) -> None:
-        """The session's client closed the device. What it wrote still reaches the hand (as bytes
-        sent on a line do), the replies go nowhere, and what the pty held for a reader goes with it."""
-        pty, self._session = self._session, None
-        self._pending_input += pty.waiting
-        self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
-        self._remove_pty(pty)
-
-    def _orphan(self, pty: _Pty) -> None:
-        """A pty whose clients opened and closed it before the server looked: a closed port's
-        client, whose bytes reach the hand and whose replies go nowhere."""
-        self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
-        self._remove_pty(pty)
-
-    def _refuse(self, pty: _Pty, why: str) -> None:
-        """Hang the pty up unread: its clients see the port go (EOF, EIO), nothing they wrote
-        reaches the hand and nothing reaches them."""
-        self._remove_pty(pty)
-        self._note(why)
-
-    def _remove_pty(self, pty: _Pty) -> None:
-        for fd in (pty.leader, pty.watch.fd if pty.watch is not None else -1):
-            try:
-                self._poller.unregister(fd)
-            except (KeyError, ValueError):
-                pass
-        pty.close()
-        self._ptys.remove(pty)
-        if self._speaker is pty:
-            self._speaker = None
-
-    def _note(self, message: str, once: bool = True) -> None:
-        """One line on stderr (each message once, unless `once` is False)."""
-        if once:
-            if message in self._noted:
-                return
-            self._noted.add(message)
-        print(f"bh8 serve: {message}", file=sys.stderr, flush=True)
-
     # -- the two serving loops -------------------------------------------------------------
 
     def _serve_unpaced(self) -> None:
@@ -717,68 +784,6 @@ class PtyServer:
         except BlockingIOError:
             pass
         self._follow_clients()
-
-    def _follow_clients(self) -> None:
-        """End the session whose client closed the device (or hang it up if a second client got
-        into its pty), and look at the fresh pty: once a client has opened it, put a new pty behind
-        the device, close this one to further opens (mode 000), and serve it only if it is the one
-        client of a free port. Otherwise hang it up unread (a second client while the port is in
-        use, or clients that share the pty because they opened it before the server moved the
-        device on: the events or the descriptor count tell), or, if its clients have all closed it
-        again, pass what they wrote to the hand."""
-        if self._link_dir is None:
-            return  # one pty that every client shares (no inotify)
-        session = self._session
-        if session is not None:
-            session.look()
-            if not session.held():
-                self._end_session()
-            elif session.history.opens > session.accepted_opens:
-                # Another open since it became the session: root's, whom mode 000 does not stop.
-                self._session = None
-                self._refuse(session, _SHARED)
-        fresh = self._fresh
-        if fresh is None:
-            self._renew_fresh_pty()
-            return
-        fresh.look()
-        if not (fresh.history.opens or fresh.history.closes or fresh.held()):
-            return
-        self._fresh = None
-        self._renew_fresh_pty()  # first: a client that finds the device now gets the new pty
-        fresh.close_to_others()
-        fresh.look()  # what happened before the mode took
-        # Looked at after the mode change: the session's client may have closed and reopened since.
-        if self._session is not None and not self._session.held():
-            self._end_session()
-        self._settle(fresh)
-
-    def _settle(self, pty: _Pty) -> None:
-        """What a pty that clients have opened becomes: the session if one client holds it and the
-        port was free; a closed port's pty if they have all gone; else refused."""
-        history = pty.history
-        if not pty.held():
-            if self._session is None:
-                self._orphan(pty)
-            else:
-                self._refuse(pty, _IN_USE)
-            return
-        if self._session is not None:
-            self._refuse(pty, _IN_USE)
-            return
-        if history.closed_since_open or _holders(pty) > 1:
-            self._refuse(pty, _SHARED)
-            return
-        if history.written_before_open:
-            # Its client opened it after others had opened, written and closed it (before the server
-            # looked): their bytes come first in the pty. They are all theirs unless it wrote too.
-            earlier = pty.read(_PTY_BUFFER_BYTES)
-            pty.look()
-            if history.written_since_open or history.closed_since_open:
-                self._refuse(pty, _SHARED)
-                return
-            self._pending_input += earlier[:max(0, INPUT_BUFFER_BYTES - len(self._pending_input))]
-        self._accept(pty)
 
     def _line_bytes_per_second(self) -> float:
         return self.firmware.baud / self._bits_per_byte

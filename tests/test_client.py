@@ -16,7 +16,8 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bh8_gym import client as client_module
+from bh8_gym.client import line as line_module
+from bh8_gym.client import supervisory as supervisory_module  # BAUD_SWITCH_SETTLE_S
 from bh8_gym.client import (
     BarrettHand,
     HandConnectionError,
@@ -249,8 +250,8 @@ class FakePort:
 @pytest.fixture
 def quick_resync(monkeypatch):
     """Shorter quiet period so fault tests stay fast (the fake's replies are instantaneous)."""
-    monkeypatch.setattr(client_module, "RESYNC_QUIET_S", 0.03)
-    monkeypatch.setattr(client_module, "BAUD_SWITCH_SETTLE_S", 0.0)
+    monkeypatch.setattr(line_module, "RESYNC_QUIET_S", 0.03)
+    monkeypatch.setattr(supervisory_module, "BAUD_SWITCH_SETTLE_S", 0.0)
 
 
 @pytest.fixture
@@ -449,7 +450,7 @@ def test_a_reply_that_trickles_without_a_prompt_cannot_hang_a_call(scripted, mon
     """A line that keeps sending bytes but never a prompt (noise, a wrong rate) times out at the
     budget plus REPLY_STREAM_LIMIT_BYTES' transfer time (the wait was pushed on by every byte)."""
     bh, hand, port = scripted
-    monkeypatch.setattr(client_module, "REPLY_STREAM_LIMIT_BYTES", 96)  # 0.1 s at 9600 baud
+    monkeypatch.setattr(line_module, "REPLY_STREAM_LIMIT_BYTES", 96)  # 0.1 s at 9600 baud
     answer = hand.receive
 
     def trickle(data: bytes) -> bytes:
@@ -640,7 +641,7 @@ def test_sim_a_closed_client_never_reopens_its_port(sim):
     for call in (lambda: sim.get("P"), sim.resync, lambda: sim.close_motors("G"), lambda: sim.get("P")):
         with pytest.raises(HandConnectionError, match="closed"):
             call()
-    assert sim._port is None
+    assert sim.port is None
 
 
 def test_sim_administrative_and_parameter_calls(sim):

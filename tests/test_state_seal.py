@@ -1,4 +1,4 @@
-"""The seal `bh8 sweep` puts on Ray Tune's pickled state (agents/state_seal.py, issue 32 item 2):
+"""The seal `bh8 sweep` puts on Ray Tune's pickled state (agents/sweep/state_seal.py, issue 32 item 2):
 state it sealed passes unchanged; a file changed, added, replaced by a link or a device, a seal
 made with another account's key, a damaged seal or none at all fail, each saying why, without
 reading what a link points to.
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from bh8_gym.agents.state_seal import SealError, check_sealed, key_path, seal
+from bh8_gym.agents.sweep.state_seal import SealError, check_sealed, key_path, seal
 
 
 @pytest.fixture(autouse=True)

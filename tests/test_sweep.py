@@ -49,7 +49,7 @@ TEST_EPISODES = 3
 
 @pytest.fixture(autouse=True)
 def _own_seal_key(tmp_path, monkeypatch):
-    """Each test's sweeps seal Ray Tune's state with a key of its own (agents/state_seal.py), not
+    """Each test's sweeps seal Ray Tune's state with a key of its own (agents/sweep/state_seal.py), not
     the account's; subprocesses inherit it."""
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config-home"))
 
@@ -188,7 +188,7 @@ def test_sweep_table_nested_or_dotted_keys_cross_grids_with_seeds():
     each other and the seeds; a trial's values land in its copy of the config only."""
     import tomllib
 
-    from bh8_gym.agents.sweep_space import apply_space, count_trials, describe, read_sweep_table
+    from bh8_gym.agents.sweep.space import apply_space, count_trials, describe, read_sweep_table
 
     text = TINY.format(total=4096, eval_freq=1024, seeds="[3, 4, 5]", space="""\
 samples = 2

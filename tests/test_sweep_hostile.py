@@ -118,7 +118,7 @@ def test_numbers_out_of_range_are_refused_at_once(tmp_path, option, value, messa
 
 
 def test_a_huge_seed_range_is_refused_without_expanding_it():
-    from bh8_gym.agents.sweep_space import SweepConfigError, parse_seeds
+    from bh8_gym.agents.sweep.space import SweepConfigError, parse_seeds
 
     started = time.process_time()
     for text in ("0-4294967295", "0-99999999999999999999", "0-500,600-1200"):
@@ -142,7 +142,7 @@ def test_an_address_nothing_listens_on_fails_at_once(tmp_path, address):
 
 
 def test_an_address_that_is_not_a_ray_head_times_out_with_a_message(tmp_path, monkeypatch):
-    from bh8_gym.agents import sweep_cluster
+    from bh8_gym.agents.sweep import cluster as sweep_cluster
 
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
@@ -201,7 +201,7 @@ def _resume_args(folder: Path, *extra) -> argparse.Namespace:
 
 def _new_sweep_json(tmp_path: Path) -> Path:
     """A sweep directory as `bh8 sweep` leaves it before Ray has saved anything: sweep.json only."""
-    from bh8_gym.agents.sweep_settings import new_settings, write_settings
+    from bh8_gym.agents.sweep.settings import new_settings, write_settings
     from bh8_gym.cli import build_parser
 
     args = build_parser(["sweep"]).parse_args(["sweep", "--config", str(_config(tmp_path)), "--out",
@@ -213,8 +213,8 @@ def _new_sweep_json(tmp_path: Path) -> Path:
 def test_an_edited_sweep_json_cannot_move_resumes_writes(tmp_path):
     """sweep_dir and experiment_path in sweep.json pointing elsewhere: the resumed settings keep the
     folder given to --resume; trials stored outside it need --storage on the command line."""
-    from bh8_gym.agents.sweep_settings import resumed_settings
-    from bh8_gym.agents.sweep_space import SweepConfigError
+    from bh8_gym.agents.sweep.settings import resumed_settings
+    from bh8_gym.agents.sweep.space import SweepConfigError
 
     folder = _new_sweep_json(tmp_path)
     elsewhere = tmp_path / "elsewhere"
@@ -252,7 +252,7 @@ def test_the_report_reads_trials_that_have_not_reported(tmp_path):
     """Ray's result of a trial stopped before its first report has no config (result.config is
     None): the seed comes from the trial's trial.json, or is unknown for one that never started,
     and the table still lists both (before: KeyError '__trial_index__', exit 1, no sweep.md)."""
-    from bh8_gym.agents.sweep_report import PENDING, STOPPED, collect
+    from bh8_gym.agents.sweep.report import PENDING, STOPPED, collect
 
     experiment = tmp_path / "experiment"
     started = experiment / "runs" / "abc_00000_seed7"

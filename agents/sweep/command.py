@@ -1,13 +1,13 @@
 """`bh8 sweep`: seeds and hyperparameters of a `bh8 train` config as Ray Tune trials, on this
 machine or on a Ray cluster; selection on the validation split, one evaluation on the test split.
 
-Each trial is a `bh8 train` run (agents/sweep_trial.py) with its own run directory; the sweep
+Each trial is a `bh8 train` run (agents/sweep/trial.py) with its own run directory; the sweep
 directory (`--out`) holds:
 
     sweep.json              the sweep's fixed settings (config, seeds, space, resources): --resume reads them
-                            (agents/sweep_settings.py)
+                            (agents/sweep/settings.py)
     ray_state.seal.json     the seal on Ray Tune's pickled state, made when the sweep stops: --resume
-                            restores that state only under it, or with --trust-file (agents/state_seal.py)
+                            restores that state only under it, or with --trust-file (agents/sweep/state_seal.py)
     sweep.md                every trial (config, seed, best validation success with its 95 % CI, steps,
                             wall time, attempts, status), the spread over seeds, the test evaluation
     validation_curves.png   all trials' validation curves, their median and range
@@ -26,7 +26,7 @@ import sys
 from pathlib import Path
 
 from bh8_gym.agents.config_check import MAX_ENVS, MAX_EPISODES, MAX_SEED, MAX_TIMESTEPS
-from bh8_gym.agents.sweep_cluster import (
+from bh8_gym.agents.sweep.cluster import (
     CONNECT_TIMEOUT_S,
     MAX_CPUS,
     address_argument,
@@ -34,20 +34,20 @@ from bh8_gym.agents.sweep_cluster import (
     resources_argument,
     start_ray,
 )
-from bh8_gym.agents.sweep_settings import (
+from bh8_gym.agents.sweep.settings import (
     MAX_FAILURES,
     SETTINGS_FILE,
     new_settings,
     resumed_settings,
     write_settings,
 )
-from bh8_gym.agents.sweep_space import MAX_SAMPLES, MAX_TRIALS, SweepConfigError, count_trials, tune_domains
+from bh8_gym.agents.sweep.space import MAX_SAMPLES, MAX_TRIALS, SweepConfigError, count_trials, tune_domains
 from bh8_gym.cli import integer_argument
 
 INSTALL_HINT = ('bh8 sweep runs its trials on Ray Tune, which is not installed; install it with\n'
                 '    pip install "bh8-gym[cluster]"        (from a clone: pip install -e ".[cluster]")')
 # Ray Tune's state in the experiment folder is pickles: --resume loads it only under this account's
-# seal (agents/state_seal.py) or with --trust-file.
+# seal (agents/sweep/state_seal.py) or with --trust-file.
 SEAL_FILE = "ray_state.seal.json"
 
 
@@ -123,7 +123,7 @@ def _trial_dirname(trial) -> str:
 def _trainable(settings: dict):
     from ray import tune
 
-    from bh8_gym.agents.sweep_trial import run_trial
+    from bh8_gym.agents.sweep.trial import run_trial
 
     return tune.with_resources(tune.with_parameters(run_trial, settings=settings), settings["resources"])
 
@@ -131,7 +131,7 @@ def _trainable(settings: dict):
 def _tuner(settings: dict, resume: bool):
     from ray import tune
 
-    from bh8_gym.agents.sweep_trial import METRIC
+    from bh8_gym.agents.sweep.trial import METRIC
 
     experiment = Path(settings["experiment_path"])
     # A sweep stopped before Ray Tune saved any state (Ray failed to start, Ctrl-C at once) starts anew.
@@ -165,7 +165,7 @@ def _tuner(settings: dict, resume: bool):
 def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path, bool]:
     """Test evaluation of the chosen model(s) (only once every trial has finished), sweep.md, plot."""
     from bh8_gym.agents.evaluate import DEFAULT_EVALUATION_SETS
-    from bh8_gym.agents.sweep_report import (
+    from bh8_gym.agents.sweep.report import (
         COMPLETE,
         PENDING,
         PLOT_FILE,
@@ -205,18 +205,18 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
 def _ours() -> tuple[str, ...]:
     """What bh8 sweep itself keeps in the experiment folder (the sweep directory unless --storage):
     Ray Tune reads none of it, so the seal leaves it out."""
-    from bh8_gym.agents.sweep_report import PLOT_FILE, REPORT_FILE, TEST_DIR
-    from bh8_gym.agents.sweep_trial import RUNS_DIR
+    from bh8_gym.agents.sweep.report import PLOT_FILE, REPORT_FILE, TEST_DIR
+    from bh8_gym.agents.sweep.trial import RUNS_DIR
 
     return RUNS_DIR, SETTINGS_FILE, SEAL_FILE, REPORT_FILE, PLOT_FILE, TEST_DIR
 
 
 def _check_ray_state(settings: dict, trust: bool) -> None:
     """Before Ray Tune unpickles a stopped sweep's state: this account's bh8 sweep sealed it and
-    it is unchanged (agents/state_seal.py), unless the user trusts the folder."""
+    it is unchanged (agents/sweep/state_seal.py), unless the user trusts the folder."""
     from ray import tune
 
-    from bh8_gym.agents.state_seal import SealError, check_sealed
+    from bh8_gym.agents.sweep.state_seal import SealError, check_sealed
 
     experiment = Path(settings["experiment_path"])
     if trust or not tune.Tuner.can_restore(str(experiment)):
@@ -233,7 +233,7 @@ def _check_ray_state(settings: dict, trust: bool) -> None:
 def _seal_ray_state(settings: dict) -> None:
     """Seal what Ray Tune saved in the experiment folder, so that --resume can load it (a failure is
     said: the next --resume then needs --trust-file)."""
-    from bh8_gym.agents.state_seal import SealError, seal
+    from bh8_gym.agents.sweep.state_seal import SealError, seal
 
     try:
         seal(Path(settings["experiment_path"]), Path(settings["sweep_dir"]) / SEAL_FILE, skip=_ours())
@@ -248,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print(INSTALL_HINT, file=sys.stderr)
         return 2
-    from bh8_gym.agents.sweep_report import COMPLETE, ERROR, PENDING, STOPPED, collect
+    from bh8_gym.agents.sweep.report import COMPLETE, ERROR, PENDING, STOPPED, collect
     from bh8_gym.agents.train import TrainingError
 
     try:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.sweep_space import describe
-from bh8_gym.agents.sweep_trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
+from bh8_gym.agents.sweep.space import describe
+from bh8_gym.agents.sweep.trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
 from bh8_gym.agents.train import BEST_MODEL_FILE, CHECKPOINT_DIR
 
 REPORT_FILE = "sweep.md"

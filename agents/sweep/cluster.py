@@ -11,7 +11,7 @@ import socket
 import threading
 
 from bh8_gym.agents import config_check
-from bh8_gym.agents.sweep_space import SweepConfigError
+from bh8_gym.agents.sweep.space import SweepConfigError
 
 # The largest amount of a resource one trial may reserve (CPUs, GPUs, memory in bytes, custom units).
 RESOURCE_LIMITS = {"cpu": 1024.0, "gpu": 64.0, "memory": float(2**50)}

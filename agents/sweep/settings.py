@@ -10,8 +10,8 @@ from pathlib import Path
 
 from bh8_gym.agents import config_check
 from bh8_gym.agents.config_check import MAX_ENVS, MAX_TIMESTEPS
-from bh8_gym.agents.sweep_cluster import check_resources
-from bh8_gym.agents.sweep_space import (
+from bh8_gym.agents.sweep.cluster import check_resources
+from bh8_gym.agents.sweep.space import (
     MAX_TRIALS,
     SweepConfigError,
     check_seeds,

@@ -1,0 +1,8 @@
+"""`bh8 sweep`: a `bh8 train` config's seeds and hyperparameters as Ray Tune trials.
+
+One concept in one package: `command` (the `bh8 sweep` options and `run`), `space` (the config's
+`[sweep]` table), `settings` (sweep.json, new or resumed, checked), `cluster` (resources,
+`--address`, starting Ray), `trial` (one trial: a `Trainer` run in a Ray worker), `report`
+(sweep.md, the curves, the test evaluation) and `state_seal` (the seal on Ray Tune's pickled
+state that `--resume` checks). Nothing is imported here, so importing one of them costs only it.
+"""
