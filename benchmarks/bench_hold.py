@@ -10,10 +10,15 @@ range, masses and frictions drawn from its ranges, 15 placements per size (45 tr
 
 `--mode loop`: the grasp a policy drives instead of GC: the env's LOOP (BH8Grasp-v0's setup script,
 38400 baud, one control block per cycle), every finger LCV 100 (the safety envelope's fastest) at
-gain 255 and the spread held at 0 (`LoopBaseline`'s law on LFAP, gain 255) from the first cycle to
-the last: 0.8 s of grasp (the env's grasp phase), then the same lift and hold, the arm moved once
-per cycle as the env's arm is. Its extra column counts the grasps whose strain went over the safety
-envelope's limit (230) in some cycle, where the env would have stopped them (they are measured on).
+gain 255 and the spread held at 0 (`LoopBaseline`'s law on LFAP, LCV `--spread-gain` x its error,
+gain 255) from the first cycle to the last: 0.8 s of grasp (the env's grasp phase), then the same
+lift and hold, the arm moved once per cycle as the env's arm is. A finger whose LFAP has closed
+1000 counts and then moved less than 10 counts in 30 ms (the host's view of §5.5's stall) gets LCV 0
+from then on: its worm holds it with the squeeze it had (§9.3.1, App. B A1: "the motor current may
+be removed since the finger joints become mechanically locked"); `--drive-stalled` drives it on at
+LCV 100 to the end, which lets a pinched object creep about the pinch (tests/test_bench_hold.py).
+Its extra column counts the grasps whose strain went over the safety envelope's limit (230) in some
+cycle, where the env would have stopped them (they are measured on).
 
 Printed per shape:
 * closed: grasps that close on the object: when GC ends F3 and F1 or F2 (which stand side by side
@@ -26,12 +31,14 @@ Printed per shape:
   (median and max, over the closed grasps that kept it);
 * GC's end after the last finger's last contact, over the grasps in which every finger stops on the
   object (median, max, and the share within TSTOP + 0.2 s): §5.5 says a motor stops TSTOP after it
-  stalls. A finger's last contact is its first touch or, if its clutch breaks away after that, the
-  breakaway: the motor then drives the outer link on alone until it too meets the object (§9.3.1), a
-  new motion, not a late stall. A finger that slips past the object and closes to CT ends on its goal
-  (§5.5 case 3), not on a stall: such grasps are not counted.
+  stalls. A finger's last contact is its first touch or, if its clutch breaks away after that, when
+  its outer link, which the motor then drives on alone (§9.3.1), meets the object (the breakaway
+  itself if the outer link already touches it, or never does): a new motion, not a late stall. A
+  finger that slips past the object and closes to CT ends on its goal (§5.5 case 3), not on a stall:
+  such grasps are not counted.
 
 Run: python benchmarks/bench_hold.py [--mode gc|loop] [--shapes cylinder box] [--placements 15] [--shake] [--jobs 2]
+     [--spread-gain 0.1] [--drive-stalled]
 """
 from __future__ import annotations
 
@@ -50,7 +57,7 @@ from bh8_gym.firmware import Firmware
 from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
 from bh8_gym.objects import ObjectSpec, add_object
 from bh8_gym.plant import HandPlant, PlantParameters
-from bh8_gym.protocol import SPREAD_MOTOR
+from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 from bh8_gym.safety import SafetyEnvelope
 
 PALM_DOWN = (1.0, 0.0, 0.0, 0.0)
@@ -74,6 +81,9 @@ MODES = ("gc", "loop")
 LOOP_CLOSE_VELOCITY, LOOP_GAIN = 100, 255  # LCV (the safety envelope's fastest) and LCPG bytes
 LOOP_GRASP_S = 0.8  # the env's grasp phase (envs.arm.ArmSchedule.grasp_seconds)
 SPREAD_GAIN = 0.1  # LCV bytes per count of spread error (agents.baselines.LoopBaseline)
+# --mode loop: a finger that has closed STALL_START_COUNTS (LFAP) and then moved less than STALL_COUNTS in
+# STALL_WINDOW_S has stalled (the firmware's own rule, §5.5 case 1, at the default TSTOP)
+STALL_WINDOW_S, STALL_COUNTS, STALL_START_COUNTS = 0.03, 10, 1000
 
 
 @dataclass(frozen=True)
@@ -87,9 +97,12 @@ class Trial:
     clearance: float
     shake: bool = False
     mode: str = "gc"
+    spread_gain: float = SPREAD_GAIN  # --mode loop: LCV bytes per count of spread error
+    lock_stalled: bool = True  # --mode loop: LCV 0 for a finger once it has stalled
 
 
-def trials(shapes, placements: int, shake: bool, seed: int = 0, mode: str = "gc") -> list[Trial]:
+def trials(shapes, placements: int, shake: bool, seed: int = 0, mode: str = "gc", spread_gain: float = SPREAD_GAIN,
+           lock_stalled: bool = True) -> list[Trial]:
     rng = np.random.default_rng(seed)
     out = []
     for shape in shapes:
@@ -98,7 +111,7 @@ def trials(shapes, placements: int, shake: bool, seed: int = 0, mode: str = "gc"
                 offset = tuple(float(v) for v in rng.uniform(-POSITION_ERROR, POSITION_ERROR, 2))
                 out.append(Trial(shape, size, float(rng.uniform(*MASS_RANGE)), float(rng.uniform(*FRICTION_RANGE)),
                                  offset, float(rng.uniform(-YAW_ERROR, YAW_ERROR)), float(rng.uniform(*CLEARANCE)), shake,
-                                 mode))
+                                 mode, spread_gain, lock_stalled))
     return out
 
 
@@ -145,16 +158,22 @@ def _rise(s: float) -> float:
 
 class _LoopGrasp:
     """BH8Grasp-v0's LOOP driven as `--mode loop` drives it: each `cycle` sends one control block
-    (fingers LCV 100 at gain 255, the spread held at 0 by LoopBaseline's law on LFAP) and reads the
-    feedback, noting the highest finger strain and whether the safety envelope would have stopped."""
+    (fingers LCV 100 at gain 255, or 0 once stalled if `lock_stalled`; the spread held at 0 by
+    LoopBaseline's law on LFAP) and reads the feedback, noting the highest finger strain and whether
+    the safety envelope would have stopped."""
 
-    def __init__(self, fw: Firmware):
+    def __init__(self, fw: Firmware, spread_gain: float, lock_stalled: bool):
         self.fw = fw
+        self.spread_gain = spread_gain
+        self.lock_stalled = lock_stalled
         self.interface = interface = grasp_interface()
         self.layout = interface.layout
         for line in (*interface.setup_commands, interface.baud_command):
             fw.transact(line.encode() + b"\r")
         self._spread = self.layout.feedback_fields.index((SPREAD_MOTOR, "LFAP"))
+        self._finger_positions = {m: self.layout.feedback_fields.index((m, "LFAP")) for m in FINGER_MOTORS}
+        self.stalled = {m: False for m in FINGER_MOTORS}
+        self._history = []  # (time, {finger: LFAP}) of the last STALL_WINDOW_S
         self._strains = [i for i, (m, name) in enumerate(self.layout.feedback_fields) if name == "LFS" and m != SPREAD_MOTOR]
         self.spread_position = 0
         self.max_strain = 0
@@ -170,14 +189,33 @@ class _LoopGrasp:
         values = []
         for motor, name in self.layout.control_fields:
             if motor == SPREAD_MOTOR:
-                values.append(int(np.clip(SPREAD_GAIN * -self.spread_position, -127, 127)) if name == "LCV" else LOOP_GAIN)
+                values.append(int(np.clip(self.spread_gain * -self.spread_position, -127, 127)) if name == "LCV" else LOOP_GAIN)
             else:
-                values.append(LOOP_CLOSE_VELOCITY if name == "LCV" else LOOP_GAIN)
+                velocity = 0 if self.stalled[motor] else LOOP_CLOSE_VELOCITY
+                values.append(velocity if name == "LCV" else LOOP_GAIN)
         self.fw.write(self.interface.encode_action(values))
         self.fw.run_until_idle()
         feedback = self.layout.decode_feedback(self.fw.read())
         self.spread_position = feedback[self._spread]
+        if self.lock_stalled:
+            self._note_stalls(feedback)
         self.max_strain = max(self.max_strain, *(feedback[i] for i in self._strains))
+
+    def _note_stalls(self, feedback) -> None:
+        """A finger that has closed STALL_START_COUNTS and then moved less than STALL_COUNTS in
+        STALL_WINDOW_S has stalled: it gets LCV 0 from then on, and its worm holds it (§9.3.1)."""
+        now = self.fw.time
+        positions = {m: feedback[i] for m, i in self._finger_positions.items()}
+        history = self._history
+        history.append((now, positions))
+        while len(history) > 1 and now - history[1][0] >= STALL_WINDOW_S:
+            history.pop(0)  # history[0] is the newest entry at least STALL_WINDOW_S old
+        then, before = history[0]
+        if now - then < STALL_WINDOW_S:
+            return
+        for m, position in positions.items():
+            if position >= STALL_START_COUNTS and abs(position - before[m]) < STALL_COUNTS:
+                self.stalled[m] = True
 
     def run_for(self, seconds: float, wrist=None) -> None:
         """Cycles for `seconds`; `wrist(elapsed)`, if given, is where the arm puts the wrist at the
@@ -191,7 +229,7 @@ class _LoopGrasp:
 
 def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     dt = plant.dt
-    loop = _LoopGrasp(fw) if trial.mode == "loop" else None
+    loop = _LoopGrasp(fw, trial.spread_gain, trial.lock_stalled) if trial.mode == "loop" else None
     # The hand is initialised high above the table, then the arm brings it over the object.
     if loop is None:
         fw.transact(b"HI\r")
@@ -201,8 +239,10 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     plant.set_wrist_pose((0.0, 0.0, wrist_z), PALM_DOWN, teleport=True)
     fw.run_for(0.1)  # the object settles
     fingers = {plant._link_index_by_name[f"f{f}_{part}"]: f - 1 for f in (1, 2, 3) for part in ("inner", "outer")}
+    outer_links = {plant._link_index_by_name[f"f{f}_outer"] for f in (1, 2, 3)}
     first_contact = [None, None, None]
     breakaway = [None, None, None]  # when each finger's clutch broke away after its first contact
+    outer_meets = [None, None, None]  # when, after that, its outer link (driven on alone) met the object
     if loop is None:
         fw.write(b"GC\r")
         start = fw.time
@@ -212,13 +252,17 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
                 fw.run_until_idle()
                 break
             fw.run_for(dt)
+            now = fw.time - start
+            for finger in 0, 1, 2:
+                if first_contact[finger] is not None and breakaway[finger] is None and not plant.clutch_engaged(finger + 1):
+                    breakaway[finger] = now
             for contact in p.getContactPoints(bodyA=plant.hand_id, bodyB=body, physicsClientId=plant.client):
                 finger = fingers.get(contact[3])
                 if finger is not None and first_contact[finger] is None:
-                    first_contact[finger] = fw.time - start
-            for finger in 0, 1, 2:
-                if first_contact[finger] is not None and breakaway[finger] is None and not plant.clutch_engaged(finger + 1):
-                    breakaway[finger] = fw.time - start
+                    first_contact[finger] = now
+                if finger is not None and breakaway[finger] is not None and outer_meets[finger] is None \
+                        and contact[3] in outer_links:
+                    outer_meets[finger] = now
         fw.read()
         gc_seconds = fw.time - start
     else:
@@ -256,7 +300,8 @@ def _grasp_lift_hold(fw: Firmware, plant: HandPlant, trial: Trial) -> dict:
     squeezed = bool(loads.sum() >= 0.7 * gc_loads.sum())
     after_contact = None
     if loop is None and stopped_on_it and None not in first_contact:
-        after_contact = gc_seconds - max(b if b is not None else f for f, b in zip(first_contact, breakaway))
+        after_contact = gc_seconds - max(m if m is not None else (b if b is not None else f)
+                                         for f, b, m in zip(first_contact, breakaway, outer_meets))
     over_limit = loop is not None and loop.max_strain > loop.safety_limit
     return dict(closed=closed, all_three=len(touching) == 3, kept=kept, squeezed=squeezed, slip_mm=slip * 1000.0, rotation_deg=rotation, gc_s=gc_seconds,
                 after_contact_s=after_contact, over_limit=over_limit,
@@ -286,19 +331,27 @@ def main() -> None:
                         help="gc: GC with HOLD 0; loop: LOOP at LCV 100, gain 255 throughout (default: %(default)s)")
     parser.add_argument("--shapes", nargs="+", choices=SHAPES, default=list(SHAPES), help="default: all four")
     parser.add_argument("--placements", type=int, default=15, help="placements per shape and size (default: %(default)s)")
+    parser.add_argument("--spread-gain", type=float, default=SPREAD_GAIN,
+                        help="--mode loop: LCV bytes per count of the spread's error (default: %(default)s)")
+    parser.add_argument("--drive-stalled", action="store_true",
+                        help="--mode loop: keep driving a finger at LCV 100 after it has stalled (default: LCV 0 then)")
     parser.add_argument("--shake", action="store_true", help="shake the lifted hand ±1 cm at 2 Hz during the hold")
     parser.add_argument("--seed", type=int, default=0, help="seed of the placements, masses and frictions (default: %(default)s)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default: %(default)s)")
     parser.add_argument("--verbose", action="store_true", help="print every trial")
     args = parser.parse_args()
-    todo = trials(args.shapes, args.placements, args.shake, args.seed, args.mode)
+    if not (math.isfinite(args.spread_gain) and args.spread_gain >= 0.0):
+        parser.error(f"--spread-gain must be a finite number >= 0, got {args.spread_gain!r}")
+    todo = trials(args.shapes, args.placements, args.shake, args.seed, args.mode, args.spread_gain, not args.drive_stalled)
     started = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(run_trial, todo, chunksize=4))
     if args.verbose:
         for trial, result in zip(todo, results):
             print(trial, {k: (round(v, 3) if isinstance(v, float) else v) for k, v in result.items()})
-    grasp = "GC" if args.mode == "gc" else f"LOOP at LCV {LOOP_CLOSE_VELOCITY}, gain {LOOP_GAIN}"
+    grasp = "GC" if args.mode == "gc" else (
+        f"LOOP at LCV {LOOP_CLOSE_VELOCITY}, gain {LOOP_GAIN} ({'driven on' if args.drive_stalled else 'LCV 0'} once stalled), "
+        f"spread gain {args.spread_gain:g}")
     print(f"{grasp}; {'hold' if not args.shake else 'shaken hold'} {HOLD_SECONDS:g} s after a {LIFT_HEIGHT * 100:g} cm lift; "
           f"{args.placements} placements x {len(SIZES)} sizes per shape, seed {args.seed}")
     last = ("GC after last contact s: median max, within TSTOP+0.2 of those stopped on it" if args.mode == "gc"
