@@ -11,12 +11,15 @@ Run: python benchmarks/bench_ceiling.py --sets primitives-test test --episodes 1
          --out runs/ceiling [--randomize] [--policy runs/eval/results.json]
 
 `--out` keeps ceiling.json (which script held which episode: `agents.ceiling.load_records`) and
-ceiling.md. Rerunning with the same --out reuses the scripts already recorded there.
+ceiling.md (with --randomize: ceiling-randomized.json and .md). Rerunning with the same --out
+reuses the scripts already recorded there and keeps the other sets' records. A --policy report is
+paired only when it holds at least the ceiling's episodes of a set from the same seed (else it says so).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -87,11 +90,15 @@ def main() -> None:
     parser.add_argument("--policy", type=Path, nargs="*", default=[], help="bh8 eval --out reports to pair")
     args = parser.parse_args()
 
-    records = {}
-    if args.out is not None and (args.out / "ceiling.json").exists():
-        for record in load_records(args.out / "ceiling.json"):
+    # Nominal and randomised physics are recorded apart: a script's outcomes under one are no answer for the other.
+    stem = "ceiling-randomized" if args.randomize else "ceiling"
+    records, others = {}, []
+    if args.out is not None and (args.out / f"{stem}.json").exists():
+        for record in load_records(args.out / f"{stem}.json"):
             if record.seed == args.seed and record.episodes == args.episodes and record.object_set in args.sets:
                 records[record.object_set] = record
+            else:
+                others.append(record)  # kept in the file as it was
     jobs = [(name, object_set, args.episodes, args.seed, args.randomize) for object_set in args.sets
             for name in args.scripts if object_set not in records or name not in records[object_set].success]
     start = time.perf_counter()
@@ -104,7 +111,7 @@ def main() -> None:
                 records[record.object_set] = record
             if args.out is not None:  # after every script: an interrupted run keeps what it measured
                 args.out.mkdir(parents=True, exist_ok=True)
-                save_records(list(records.values()), args.out / "ceiling.json")
+                save_records([*others, *records.values()], args.out / f"{stem}.json")
     print(f"{len(jobs)} script runs in {time.perf_counter() - start:.0f} s"
           f"{' (domain randomisation on)' if args.randomize else ''}")
     parts = []
@@ -113,13 +120,16 @@ def main() -> None:
         policies = {}
         for path in args.policy:
             outcomes = _policy_outcomes(path, object_set, record)
-            if outcomes is not None:
+            if outcomes is None:
+                print(f"{path}: not paired on {object_set}: its report needs at least the ceiling's "
+                      f"{record.episodes} episodes of that set from seed {record.seed}", file=sys.stderr)
+            else:
                 policies[str(path)] = outcomes
         parts.append(markdown(summarize_ceiling(record, args.scripts), policies, record))
     text = "\n\n".join(parts)
     print(text)
     if args.out is not None:
-        (args.out / "ceiling.md").write_text(text + "\n")
+        (args.out / f"{stem}.md").write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -274,9 +274,11 @@ def main() -> None:
                 runs.append(bench_vector(env_id, args.envs, max(args.steps // args.envs, 200), args.env_kwargs, engine))
         for engine, runs in vectors.items():
             rates = sorted(run["steps_per_s"] for run in runs)
+            peaks = [peak for run in runs for peak in run["worker_peak_mib"]]
+            workers = (f"{len(runs[0]['worker_peak_mib'])} worker processes, peak RSS per worker {max(peaks):.0f} MiB"
+                       if peaks else "no worker process (ShardedVecEnv steps one env in this process)")
             print(f"{env_id} {args.envs} envs in {engines[engine]}: {rates[len(rates) // 2]:.0f} "
-                  f"({rates[0]:.0f}-{rates[-1]:.0f}) env steps/s total, {len(runs[0]['worker_peak_mib'])} worker "
-                  f"processes, peak RSS per worker {max(max(run['worker_peak_mib']) for run in runs):.0f} MiB")
+                  f"({rates[0]:.0f}-{rates[-1]:.0f}) env steps/s total, {workers}")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")
     panda = bench_panda_gym(args.steps, args.repeats)
