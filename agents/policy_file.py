@@ -138,7 +138,8 @@ class NumpyPolicy:
         if self.output_transform not in OUTPUT_TRANSFORMS:
             raise PolicyFileError(f"unknown output transform {self.output_transform!r} in {str(self.path)!r}")
         self.obs_mean = arrays["obs_mean"].astype(np.float64)
-        self.obs_std = np.sqrt(arrays["obs_var"].astype(np.float64) + float(arrays["obs_epsilon"]))
+        with np.errstate(invalid="ignore"):  # a negative variance gives NaN here, refused by _check_shapes
+            self.obs_std = np.sqrt(arrays["obs_var"].astype(np.float64) + float(arrays["obs_epsilon"]))
         self.obs_clip = float(arrays["obs_clip"])
         self.action_low = arrays["action_low"].astype(np.float64)
         self.action_high = arrays["action_high"].astype(np.float64)
