@@ -294,7 +294,7 @@ PRETRAIN_KEYS = {
     "keep_decay": UNIT_OPEN_LOW,
     "keep_batches": Integer(1, 10_000),
     "keep_floor": Real(0, 100),
-    "teacher": Unsupported("set in `_check_pretrain`"),  # a list of the ceiling family's scripts
+    "teacher": ListOf(Text(), 1, 64),  # script names of the ceiling family: `_check_pretrain` checks them and the count
     "dagger_iterations": Integer(1, 20),
     "dagger_beta": FRACTION,
 }

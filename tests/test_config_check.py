@@ -115,6 +115,16 @@ def test_pretrain_needs_the_grasp_env_and_ppo():
         check_config(_with(_base("SAC", GRASP), None, "pretrain", {}))
 
 
+def test_a_teacher_names_scripts_of_the_ceiling_family():
+    """[pretrain] teacher (agents/teacher.py): a list of the family's scripts, named in the message."""
+    grasp = _base("PPO", GRASP)
+    check_config(_with(grasp, None, "pretrain", {"teacher": ["squeeze-g255", "loop"], "dagger_iterations": 2}))
+    with pytest.raises(ConfigError, match=r"^\[pretrain\] teacher must be a list of 1\.\.16 items, each one of "):
+        check_config(_with(grasp, None, "pretrain", {"teacher": ["squeeze", "no-such-script"]}))
+    with pytest.raises(ConfigError, match=r"^\[pretrain\] dagger_beta must be in \[0, 1\], got 1\.5$"):
+        check_config(_with(grasp, None, "pretrain", {"teacher": ["loop"], "dagger_beta": 1.5}))
+
+
 def test_nesting_is_bounded_without_recursion_errors():
     deep: dict = {}
     node = deep
