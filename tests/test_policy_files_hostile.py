@@ -157,6 +157,24 @@ def _metadata(exported, **changes):
         return np.array(json.dumps({**json.loads(str(data["metadata"])), **changes}))
 
 
+def _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch) -> str:
+    """`bh8 deploy --policy path` exits 2 without opening the port or writing its log (the last
+    run's log is left alone); returns its stderr, one line starting "bh8 deploy: "."""
+    import bh8_gym.agents.deploy
+
+    def refuse(*args, **kwargs):
+        raise AssertionError(f"deploy opened the port for {path}")
+
+    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    log = tmp_path / "deploy.jsonl"
+    capsys.readouterr()
+    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bh8 deploy: "), err
+    assert not log.exists()
+    return err
+
+
 @pytest.mark.parametrize("case, message", [
     ("layer 1 takes fewer inputs", "layer 1 takes 15 inputs but layer 0 gives 16"),
     ("bias of another size", "layer 0 has weights (16, 15) and biases (3,)"),
@@ -173,7 +191,6 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz
     prediction with numpy's raw matmul error and exit 1, the log without a stop record. The shapes
     (and finiteness) are checked when the file is read: PolicyFileError, `bh8 deploy` exit 2 (a
     policy it refuses) before the port is opened, so the hand never moves."""
-    import bh8_gym.client
     from bh8_gym.agents.policy_file import PolicyFileError, load_policy
 
     with np.load(reach_policy_npz, allow_pickle=False) as data:
@@ -195,16 +212,8 @@ def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz
     with pytest.raises(PolicyFileError, match=message.replace("(", r"\(").replace(")", r"\)")):
         load_policy(path)
 
-    def refuse(*args, **kwargs):
-        raise AssertionError("deploy opened the port for a damaged policy")
-
-    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
-    log = tmp_path / "deploy.jsonl"
-    capsys.readouterr()
-    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("bh8 deploy: ") and "damaged" in err and "Traceback" not in err
-    assert not log.exists()  # refused before anything was sent: the last run's log is left alone
+    err = _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch)
+    assert "damaged" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("case, message", [
@@ -220,7 +229,6 @@ def test_a_policy_that_cannot_act_on_the_env_is_refused_before_the_port_opens(re
     0 or stopped there. Now the action size is checked against the env's control block and one
     forward pass on test observations must give finite actions of the env's shape: exit 2 before
     the port is opened."""
-    import bh8_gym.agents.deploy
 
     with np.load(reach_policy_npz, allow_pickle=False) as data:
         w0, w1, b1 = data["layer0_weight"], data["layer1_weight"], data["layer1_bias"]
@@ -232,16 +240,8 @@ def test_a_policy_that_cannot_act_on_the_env_is_refused_before_the_port_opens(re
     }[case]
     path = _damaged(reach_policy_npz, tmp_path, **bad)
 
-    def refuse(*args, **kwargs):
-        raise AssertionError("deploy opened the port for a policy that cannot act")
-
-    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
-    log = tmp_path / "deploy.jsonl"
-    capsys.readouterr()
-    assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("bh8 deploy: ") and message in err and len(err.strip().splitlines()) == 1, err
-    assert not log.exists()
+    err = _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch)
+    assert message in err and len(err.strip().splitlines()) == 1, err
 
 
 class _FailingAtCycle:

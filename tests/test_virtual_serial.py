@@ -1190,6 +1190,16 @@ def test_a_pty_in_use_cannot_be_joined_by_its_own_name(tmp_path):
         link.close()
 
 
+def _close_during_a_stall(link, tstop_ms: int) -> int:
+    """`link`'s client sends SHI with TSTOP `tstop_ms` (the spread stalls that long at its open stop,
+    §5.5 case 1) and closes the port while it runs; returns the next client's raw descriptor."""
+    assert link.lines(f"SFSET TSTOP {tstop_ms}") == []
+    link.write(b"SHI\r")
+    assert link.read_until(b"SHI", timeout=10) == b"SHI"
+    link.port.close()
+    return _raw_open(link.device)
+
+
 def test_the_reply_to_a_closed_clients_motion_does_not_reach_the_next_client(tmp_path):
     """A client sends a motion and closes while it runs; the next client's command waits for the
     hand to finish it (the hand would drop it meanwhile) and gets its own reply, not the end of
@@ -1197,11 +1207,7 @@ def test_the_reply_to_a_closed_clients_motion_does_not_reach_the_next_client(tmp
     (§5.5 case 1), so the next client writes while it runs."""
     link = _serve(tmp_path / "store")
     try:
-        assert link.lines("SFSET TSTOP 12000") == []
-        link.write(b"SHI\r")
-        assert link.read_until(b"SHI", timeout=10) == b"SHI"
-        link.port.close()
-        fd = _raw_open(link.device)
+        fd = _close_during_a_stall(link, tstop_ms=12000)
         try:
             os.write(fd, b"2FGET DP\r")
             assert _raw_read_until(fd, PROMPT, timeout=120) == b"2FGET DP\n\r8500\n\r=> "
@@ -1219,11 +1225,7 @@ def test_a_ctrl_c_from_the_next_client_aborts_a_closed_clients_motion(tmp_path):
     client's."""
     link = _serve(tmp_path / "store")
     try:
-        assert link.lines("SFSET TSTOP 65535") == []
-        link.write(b"SHI\r")
-        assert link.read_until(b"SHI", timeout=10) == b"SHI"
-        link.port.close()
-        fd = _raw_open(link.device)
+        fd = _close_during_a_stall(link, tstop_ms=65535)
         try:
             os.write(fd, b"\x03")
             assert _raw_read_until(fd, PROMPT, timeout=30) == b"\n\rERR 16384\n\r=> "
