@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from bh8_gym.agents.baselines import FAMILY, make_script
+from bh8_gym.agents.baselines import make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluate import object_name, run_episodes
 from bh8_gym.agents.run_files import write_json_atomic

@@ -78,7 +78,6 @@ from bh8_gym.agents.run_files import (
     write_json_atomic,
 )
 from bh8_gym.cli import handling_signals, integer_argument
-from bh8_gym.envs import ENV_IDS
 from bh8_gym.envs.interfaces import host_options
 
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}

@@ -11,7 +11,6 @@ table. Over placements and objects: benchmarks/bench_hold.py.
 from __future__ import annotations
 
 import numpy as np
-import pybullet as p
 import pytest
 
 from bh8_gym.envs.interfaces import grasp_interface

@@ -9,7 +9,6 @@ no CPU), SPEC.md §2 (framing, ^C → ERR 16384), §5 (RealTime blocks are count
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import select
 import shutil

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from bh8_gym.client.line import HandConnectionError, SerialLine, check_baud_rate, split_lines
+from bh8_gym.client.line import SerialLine, check_baud_rate, split_lines
 from bh8_gym.client.realtime import (
     FLAG_NAMES_43,
     FLAG_NAMES_44,
