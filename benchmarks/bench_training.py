@@ -21,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from bh8_gym.agents.config_check import MAX_TIMESTEPS
 from bh8_gym.agents.env_factory import EnvFactory
 from bh8_gym.agents.train import Trainer, default_config_path, load_config
 
@@ -109,8 +110,8 @@ def main() -> None:
     if not args.config_hyperparameters:
         config["hyperparameters"].update(n_steps=args.n_steps, batch_size=args.batch_size)
     # evaluation and checkpoints out of the way: this measures training throughput
-    config["eval"]["freq"] = 10 ** 12
-    config["train"]["checkpoint_freq"] = 10 ** 12
+    config["eval"]["freq"] = MAX_TIMESTEPS
+    config["train"]["checkpoint_freq"] = MAX_TIMESTEPS
     config.pop("pretrain", None)
     seconds = {"rollouts": 0.0, "update": 0.0, "own envs": 0.0}
     with tempfile.TemporaryDirectory() as out:
