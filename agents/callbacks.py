@@ -56,7 +56,7 @@ class EvaluationCallback(BaseCallback):
 
     def evaluate(self) -> dict:
         config = self.trainer.config
-        if self._worker is None and self.trainer.n_envs > 1 and self.n_episodes > 1:
+        if self._worker is None and self.trainer.processes > 1 and self.n_episodes > 1:
             # Started by the first evaluation: it builds its env while this process runs its first episodes.
             self._worker = EvaluationWorker(config["env_id"], self.trainer.evaluation_env_kwargs,
                                             ignore_signals=self._ignore_signals)

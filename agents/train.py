@@ -224,7 +224,8 @@ class Trainer:
     """One training run in `out_dir`: builds envs and model (or resumes them) and runs `learn`."""
 
     def __init__(self, config: dict, out_dir: Path, n_envs: int | None = None, seed: int = 0,
-                 progress: bool = True, verbose: int = 0, on_evaluation=None, log=None, trust: bool = False):
+                 progress: bool = True, verbose: int = 0, on_evaluation=None, log=None, trust: bool = False,
+                 processes: int | None = None):
         self.config = config
         #: Called with a line of text for each step of the warm start and each validation evaluation
         #: (`bh8 train` prints them); None: silent.
@@ -244,6 +245,12 @@ class Trainer:
         if not 1 <= self.n_envs <= MAX_ENVS:
             raise ValueError(f"n_envs must be in 1..{MAX_ENVS}, got {self.n_envs}")
         check_rollout(config, self.n_envs)
+        #: Processes the envs are stepped in (this one and workers), and the validation evaluations
+        #: (a second one only if > 1): one per core by default, never more than the envs; a `bh8
+        #: sweep` trial passes the CPUs Ray gave it.
+        self.processes = min(self.n_envs, int(processes if processes is not None else os.cpu_count() or 1))
+        if self.processes < 1:
+            raise ValueError(f"processes must be positive, got {processes!r}")
         self.seed = int(seed)
         self.progress = progress
         self.verbose = verbose
@@ -288,7 +295,7 @@ class Trainer:
             return DummyVecEnv(factories)
         # Workers ignore STOP_SIGNALS: a Ctrl-C or a kill sent to the whole process group then stops
         # training through this process (checkpoint, then it closes the workers), not mid-step.
-        return ShardedVecEnv(factories, ignore_signals=STOP_SIGNALS)
+        return ShardedVecEnv(factories, n_processes=self.processes, ignore_signals=STOP_SIGNALS)
 
     def _new_model(self, env):
         algorithm = _algorithm_class(self.config["algorithm"])

@@ -267,17 +267,21 @@ def main() -> None:
             f"{fmt('in_env_overhead_ratio', '.2f')}, of which its other PyBullet calls alone "
             f"{fmt('pybullet_calls_ratio', '.2f')}"
         )
-        engines = {"sharded": "ShardedVecEnv (bh8 train's)", "subproc": "SB3's SubprocVecEnv"}
+        # The like-for-like baseline of the vectorised rows is one env in a vector env in this process:
+        # the same wrappers, actions and resets (the row above times the bare env and leaves resets out).
+        engines = {("sharded", 1): "1 env in ShardedVecEnv (this process: the baseline)",
+                   ("sharded", args.envs): f"{args.envs} envs in ShardedVecEnv (bh8 train's)",
+                   ("subproc", args.envs): f"{args.envs} envs in SB3's SubprocVecEnv"}
         vectors = {engine: [] for engine in engines}
         for _ in range(args.repeats):  # interleaved, as the single-process rounds
-            for engine, runs in vectors.items():
-                runs.append(bench_vector(env_id, args.envs, max(args.steps // args.envs, 200), args.env_kwargs, engine))
+            for (engine, n_envs), runs in vectors.items():
+                runs.append(bench_vector(env_id, n_envs, max(args.steps // n_envs, 200), args.env_kwargs, engine))
         for engine, runs in vectors.items():
             rates = sorted(run["steps_per_s"] for run in runs)
             peaks = [peak for run in runs for peak in run["worker_peak_mib"]]
             workers = (f"{len(runs[0]['worker_peak_mib'])} worker processes, peak RSS per worker {max(peaks):.0f} MiB"
-                       if peaks else "no worker process (ShardedVecEnv steps one env in this process)")
-            print(f"{env_id} {args.envs} envs in {engines[engine]}: {rates[len(rates) // 2]:.0f} "
+                       if peaks else "no worker process")
+            print(f"{env_id} {engines[engine]}: {rates[len(rates) // 2]:.0f} "
                   f"({rates[0]:.0f}-{rates[-1]:.0f}) env steps/s total, {workers}")
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(f"peak RSS: this process (one env of each kind) {peak_kib / 1024:.0f} MiB")

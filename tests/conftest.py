@@ -8,6 +8,8 @@ output lines each ending "\\n\\r", then the prompt "=> ".
 """
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -191,3 +193,63 @@ def reach_policy_npz(tmp_path_factory):
         env.close()
     path = tmp_path_factory.mktemp("policy") / "reach.npz"
     return export_sb3_policy(model, path, metadata={"env_id": "BH8FingerReach-v0", "env_kwargs": {}})
+
+
+# -- bh8 sweep in a process of its own: hang guards ------------------------------------------------
+# Hang guards, not expectations. A sweep's speed is the machine's: on a 2-core machine loaded by
+# other jobs (load average 10) Ray took 5 minutes to start a resumed sweep's trials of a few
+# thousand steps, and fixed limits of 300 and 600 s failed two sweep tests. So a wait fails when
+# the sweep has written nothing to its folder for SWEEP_STALL_SECONDS (a hang), or after
+# SWEEP_WAIT_SECONDS in all.
+SWEEP_STALL_SECONDS = 300.0
+SWEEP_WAIT_SECONDS = 1500.0
+
+
+def _last_write(folder: Path) -> float:
+    """The newest modification time of anything in `folder` (0 while it does not exist)."""
+    latest = 0.0
+    try:
+        for path in folder.rglob("*"):
+            try:
+                latest = max(latest, path.stat().st_mtime)
+            except OSError:  # a file Ray replaced between the listing and here
+                pass
+    except OSError:  # the folder not made yet, or a folder of it replaced while listed
+        pass
+    return latest
+
+
+def _sweep_until(done, process: subprocess.Popen, log: Path, folder: Path, timeout: float, what: str):
+    start = time.monotonic()
+    last_write, last_change = _last_write(folder), start
+    while True:
+        found = done()
+        if found:
+            return found
+        now = time.monotonic()
+        write = _last_write(folder)
+        if write != last_write:
+            last_write, last_change = write, now
+        if now - last_change > SWEEP_STALL_SECONDS or now - start > timeout:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+            raise AssertionError(f"{what} ({now - last_change:.0f} s without a write to {folder}, "
+                                 f"{now - start:.0f} s in all):\n{log.read_text()[-3000:]}")
+        time.sleep(0.2)
+
+
+def sweep_wait(predicate, process: subprocess.Popen, log: Path, folder: Path, timeout: float = SWEEP_WAIT_SECONDS):
+    """`predicate()` once truthy, while the sweep (`process`, writing `log`, its run folder
+    `folder`) runs; it ending first, or a hang, is a failure showing the log's end."""
+    def done():
+        found = predicate()
+        assert found or process.poll() is None, \
+            f"bh8 sweep ended early ({process.returncode}):\n{log.read_text()[-3000:]}"
+        return found
+    return _sweep_until(done, process, log, folder, timeout, "timed out")
+
+
+def sweep_finish(process: subprocess.Popen, log: Path, folder: Path, timeout: float = SWEEP_WAIT_SECONDS) -> int:
+    """The sweep's exit status once it ends; a hang is a failure (see sweep_wait)."""
+    _sweep_until(lambda: process.poll() is not None, process, log, folder, timeout, "bh8 sweep did not finish")
+    return process.returncode

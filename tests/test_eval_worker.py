@@ -105,3 +105,30 @@ def test_training_with_several_envs_evaluates_in_two_processes_with_the_one_proc
                                      seed=int(config["eval"]["seed"])))
     assert row["success_rate"] == summary["success_rate"]
     assert row["mean_return"] == pytest.approx(summary["mean_return"], rel=1e-12)
+
+
+def test_a_trainer_given_one_process_steps_its_envs_and_evaluates_in_this_process_only(tmp_path, monkeypatch):
+    """`Trainer(processes=1)` (a `bh8 sweep` trial with cpu=1 and several envs) starts no env worker
+    and no evaluation worker: it keeps to the CPUs it was given, and its figures are the same."""
+    from bh8_gym.agents import eval_worker
+    from bh8_gym.agents.run_files import read_evaluations
+    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+
+    split_runs = []
+    monkeypatch.setattr(eval_worker.EvaluationWorker, "__init__",
+                        lambda self, *args, **kwargs: split_runs.append(args) or pytest.fail("a worker was started"))
+    config = load_config(default_config_path("PPO", "BH8FingerReach-v0"))
+    config["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
+    config["policy_kwargs"]["net_arch"] = [16, 16]
+    config["eval"].update(freq=128, episodes=3)
+    config["train"]["checkpoint_freq"] = 10 ** 9
+    trainer = Trainer(config, tmp_path / "run", n_envs=4, seed=0, progress=False, processes=1)
+    vec = trainer._vec_env()
+    try:
+        assert vec.num_envs == 4 and vec.processes == []
+    finally:
+        vec.close()
+    trainer.run(128)
+    assert split_runs == [] and read_evaluations(tmp_path / "run")  # it evaluated, here
+    assert Trainer(config, tmp_path / "other", n_envs=4, progress=False, processes=2).processes == 2
+    assert Trainer(config, tmp_path / "third", n_envs=1, progress=False, processes=2).processes == 1

@@ -16,12 +16,12 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from bh8_gym.cli import main
+from conftest import sweep_finish, sweep_wait
 
 TINY = """\
 algorithm = "PPO"
@@ -74,31 +74,8 @@ def _sweep_process(log: Path, *arguments) -> subprocess.Popen:
                             stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
 
 
-# Hang guards, not expectations: on a 2-core machine loaded by other jobs (load average 12) a sweep
-# printed nothing for 90 s (Ray and torch still starting) and both sweep tests failed. A sweep that
-# works never waits this long; each test's own limit (pytest-timeout) is raised to cover them.
-WAIT_SECONDS = 300.0
-SWEEP_TEST_TIMEOUT = 1200
-
-
-def _wait_for(predicate, process: subprocess.Popen, log: Path, timeout: float = WAIT_SECONDS):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        found = predicate()
-        if found:
-            return found
-        assert process.poll() is None, f"bh8 sweep ended early ({process.returncode}):\n{log.read_text()[-3000:]}"
-        time.sleep(0.2)
-    process.kill()
-    raise AssertionError(f"timed out:\n{log.read_text()[-3000:]}")
-
-
-def _finish(process: subprocess.Popen, log: Path, timeout: float = WAIT_SECONDS) -> int:
-    try:
-        return process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        raise AssertionError(f"bh8 sweep did not finish:\n{log.read_text()[-3000:]}") from None
+# Each test's own limit (pytest-timeout) covers its waits (conftest.py's sweep_wait).
+SWEEP_TEST_TIMEOUT = 3600
 
 
 def _table(report: str) -> dict[str, dict[str, str]]:
@@ -138,6 +115,25 @@ def test_help_explains_every_option(capsys):
                    "--storage", "--max-failures", "--resume", "--out", "--test-episodes", "--search", "--samples"):
         assert option in text
     assert "ray start --head" in text and "validation" in text and "test split" in text
+
+
+@pytest.mark.parametrize("train_table, options, n_envs", [("", ["--resources-per-trial", "cpu=2"], 2),
+                                                          ("n_envs = 8", ["--resources-per-trial", "cpu=2"], 8),
+                                                          ("n_envs = 8", ["--n-envs", "3"], 3)])
+def test_a_trial_trains_the_configs_envs_unless_told_otherwise(tmp_path, train_table, options, n_envs):
+    """A trial's envs: --n-envs, else the config's train.n_envs (the grasp config's 8 share each
+    process's per-step costs), else one per CPU of the trial (docs/cluster.md)."""
+    import argparse
+
+    from bh8_gym.agents.sweep.command import configure_parser
+    from bh8_gym.agents.sweep.settings import new_settings
+
+    config = _config(tmp_path)
+    config.write_text(config.read_text().replace("[train]\n", f"[train]\n{train_table}\n"))
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    settings = new_settings(parser.parse_args(["--config", str(config), "--out", str(tmp_path / "sweep"), *options]))
+    assert settings["n_envs"] == n_envs
 
 
 @pytest.mark.parametrize("case", ["unknown space key", "space key in an unknown table", "bad spec", "bad seeds",
@@ -224,16 +220,16 @@ def test_sweep_stopped_by_ctrl_c_resumes_and_reports_what_bh8_eval_measures(tmp_
     config, sweep = _config(tmp_path, total=4096), tmp_path / "sweep"
     log = tmp_path / "first.log"
     process = _sweep_process(log, "--config", config, "--out", sweep)
-    _wait_for(lambda: list(sweep.glob("runs/*/checkpoints/latest.json")), process, log)
+    sweep_wait(lambda: list(sweep.glob("runs/*/checkpoints/latest.json")), process, log, sweep)
     os.killpg(process.pid, signal.SIGINT)
-    assert _finish(process, log) == 130, log.read_text()[-3000:]
+    assert sweep_finish(process, log, sweep) == 130, log.read_text()[-3000:]
     stopped = (sweep / "sweep.md").read_text()
     assert "stopped" in stopped and "bh8 sweep --resume" in stopped
     assert not (sweep / "test").exists()  # no test evaluation of an unfinished sweep
 
     log = tmp_path / "resumed.log"
     process = _sweep_process(log, "--resume", sweep)
-    assert _finish(process, log) == 0, log.read_text()[-3000:]
+    assert sweep_finish(process, log, sweep) == 0, log.read_text()[-3000:]
     report = (sweep / "sweep.md").read_text()
     rows = _table(report)
     run_dirs = sorted((sweep / "runs").iterdir())
@@ -290,11 +286,11 @@ def test_killed_worker_is_retried_from_its_checkpoint_and_a_crash_is_reported(tm
                      space='[sweep.space]\n"env_kwargs.targets" = {grid = [{}, {bogus = 1}]}')
     sweep, log = tmp_path / "sweep", tmp_path / "sweep.log"
     process = _sweep_process(log, "--config", config, "--out", sweep, "--max-failures", "1")
-    checkpoint = _wait_for(lambda: list(sweep.glob("runs/*/checkpoints/latest.json")), process, log)[0]
+    checkpoint = sweep_wait(lambda: list(sweep.glob("runs/*/checkpoints/latest.json")), process, log, sweep)[0]
     run_dir = checkpoint.parent.parent
     trial = json.loads((run_dir / "trial.json").read_text())
     os.kill(trial["pid"], signal.SIGKILL)
-    assert _finish(process, log) == 1, log.read_text()[-3000:]
+    assert sweep_finish(process, log, sweep) == 1, log.read_text()[-3000:]
 
     rows = _table((sweep / "sweep.md").read_text())
     killed = rows[trial["trial_id"]]

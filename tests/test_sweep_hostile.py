@@ -26,6 +26,7 @@ from types import SimpleNamespace
 import pytest
 
 from bh8_gym.cli import main
+from conftest import sweep_finish, sweep_wait
 
 ray = pytest.importorskip("ray")
 
@@ -274,24 +275,13 @@ def _sweep_process(log: Path, *arguments) -> subprocess.Popen:
                             start_new_session=True)
 
 
-def _finish(process: subprocess.Popen, log: Path, timeout: float = 600.0) -> int:
-    try:
-        return process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        raise AssertionError(f"bh8 sweep did not finish:\n{log.read_text()[-3000:]}") from None
-
-
-@pytest.mark.timeout(1200)  # two Ray starts and two short trials, on a loaded 2-core machine
+@pytest.mark.timeout(3600)  # two Ray starts and two short trials; the waits are hang guards (conftest.py)
 def test_ctrl_c_before_any_report_then_resume_only_under_the_seal(tmp_path):
     sweep, log = tmp_path / "sweep", tmp_path / "first.log"
     process = _sweep_process(log, "--config", _config(tmp_path, total=1024), "--out", sweep)
-    deadline = time.monotonic() + 600  # Ray's workers start slowly on a loaded machine
-    while not list(sweep.glob("runs/*/trial.json")):  # a trial has started; none has evaluated yet
-        assert process.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
-        time.sleep(0.1)
+    sweep_wait(lambda: list(sweep.glob("runs/*/trial.json")), process, log, sweep)  # a trial has started; none has evaluated yet
     os.killpg(process.pid, signal.SIGINT)
-    assert _finish(process, log) == 130, log.read_text()[-3000:]
+    assert sweep_finish(process, log, sweep) == 130, log.read_text()[-3000:]
     text = log.read_text()
     assert "KeyError" not in text and "Traceback" not in text, text[-3000:]
     assert f"bh8 sweep --resume {sweep}" in text
@@ -322,5 +312,5 @@ def test_ctrl_c_before_any_report_then_resume_only_under_the_seal(tmp_path):
 
     log = tmp_path / "resumed.log"
     process = _sweep_process(log, "--resume", sweep)
-    assert _finish(process, log) == 0, log.read_text()[-3000:]
+    assert sweep_finish(process, log, sweep) == 0, log.read_text()[-3000:]
     assert "2 complete" in (sweep / "sweep.md").read_text()

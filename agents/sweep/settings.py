@@ -85,7 +85,7 @@ def new_settings(args: argparse.Namespace) -> dict:
         "config": config,
         **sweep,
         "timesteps": args.timesteps,
-        "n_envs": args.n_envs or min(MAX_ENVS, max(1, int(resources["cpu"]))),
+        "n_envs": args.n_envs or config.get("train", {}).get("n_envs") or min(MAX_ENVS, max(1, int(resources["cpu"]))),
         "resources": resources,
         "max_concurrent": args.max_concurrent,
         "max_failures": args.max_failures or 0,

@@ -111,7 +111,7 @@ def run_trial(params: dict, settings: dict) -> None:
 
     try:
         trainer = Trainer(config, run_dir, n_envs=settings["n_envs"], seed=seed, progress=False,
-                          on_evaluation=on_evaluation)
+                          on_evaluation=on_evaluation, processes=max(1, int(settings["resources"]["cpu"])))
         resume = trainer.has_checkpoint()
         if not resume:  # an attempt killed before its first checkpoint: its evaluations are redone
             for leftover in ("evaluations.csv", BEST_MODEL_FILE):
