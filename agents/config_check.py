@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
+import re
 import reprlib
 from typing import Any
 
@@ -325,6 +326,10 @@ def _bad(where: str, key: str, kind, value) -> ConfigError:
     return ConfigError(f"{where} {key} must be {kind}, got {shown(value)}")
 
 
+# A key TOML writes bare; any other is shown quoted, its control characters escaped.
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
 def check_plain(value: Any, where: str = "", path: tuple[str, ...] = ()) -> None:
     """Plain data only (tables, lists, strings, booleans, finite numbers), at most MAX_DEPTH deep:
     what TOML and JSON give, without the NaN, infinity, 10**400 or thousand-deep nesting that
@@ -340,7 +345,8 @@ def check_plain(value: Any, where: str = "", path: tuple[str, ...] = ()) -> None
         for key, item in value.items():
             if not isinstance(key, str):
                 raise bad(f"has a key that is not a string: {shown(key)}")
-            check_plain(item, where, (*path, key if not path else f".{key}"))
+            name = key if _BARE_KEY.fullmatch(key) else shown(key)  # quoted as TOML would: one line
+            check_plain(item, where, (*path, name if not path else f".{name}"))
     elif isinstance(value, list):
         for index, item in enumerate(value):
             check_plain(item, where, (*path, f"[{index}]"))

@@ -191,6 +191,18 @@ def test_any_value_is_accepted_or_refused_naming_its_key(key, value):
     assert not (isinstance(value, float) and not math.isfinite(value))
 
 
+def test_a_nested_key_with_a_line_break_is_quoted_in_a_one_line_message():
+    """A key nested in a value is named as TOML would quote it: a line break in it (which the
+    property test above found once) does not break the message in two."""
+    config = _with(_base("PPO"), "hyperparameters", "use_sde", {"nx\n": [0, 2**70], "ok_key": {"k y": float("nan")}})
+    with pytest.raises(ConfigError) as error:
+        check_config(config)
+    assert str(error.value) == "[hyperparameters] use_sde.'nx\\n'[1] must be a 64-bit integer, got 1180591620717411303424"
+    del config["hyperparameters"]["use_sde"]["nx\n"]
+    with pytest.raises(ConfigError, match=r"use_sde\.ok_key\.'k y' must be a finite number"):
+        check_config(config)
+
+
 # -- the command ---------------------------------------------------------------------------------
 
 
