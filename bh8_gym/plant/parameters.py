@@ -128,9 +128,9 @@ class PlantParameters:
     # loop). A pad pressed flat resists it: a uniform circular patch of radius a carries up to (2/3)·mu·N·a.
     # Hertz's estimate for a rubber pad (E about 3 MPa) pressed with 10-30 N on a 4-8 cm object: a = 3-6 mm.
     # The links get PyBullet's torsional friction (2/3)·a·finger_friction, which PyBullet multiplies by the
-    # other body's friction: (2/3)·a·mu for the pair. Off: at 4 mm (and 2 mm) fingertips pressed on the
-    # table at full LOOP torque chatter (tests/test_table_contact.py), and the pinch's creep in bench_hold
-    # is the solver's early stop, not too little torsional friction (docs/modelling.md, known gaps).
+    # other body's friction: (2/3)·a·mu for the pair. Off: at 4 mm fingertips pressed on the table at full
+    # LOOP torque chatter (tests/test_table_contact.py; at 2 mm less, still over its limit), and the pinch's
+    # creep in bench_hold is the solver's early stop, not too little torsional friction (docs/modelling.md).
     finger_pad_radius: float = 0.0
     link_mass_scale: float = 1.0  # scales every hand link's mass (randomisation)
 
