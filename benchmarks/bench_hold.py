@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
+from bh8_gym.agents.baselines import StalledFingers
 from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import Firmware
 from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
@@ -81,9 +82,6 @@ MODES = ("gc", "loop")
 LOOP_CLOSE_VELOCITY, LOOP_GAIN = 100, 255  # LCV (the safety envelope's fastest) and LCPG bytes
 LOOP_GRASP_S = 0.8  # the env's grasp phase (envs.arm.ArmSchedule.grasp_seconds)
 SPREAD_GAIN = 0.1  # LCV bytes per count of spread error (agents.baselines.LoopBaseline)
-# --mode loop: a finger that has closed STALL_START_COUNTS (LFAP) and then moved less than STALL_COUNTS in
-# STALL_WINDOW_S has stalled (the firmware's own rule, §5.5 case 1, at the default TSTOP)
-STALL_WINDOW_S, STALL_COUNTS, STALL_START_COUNTS = 0.03, 10, 1000
 
 
 @dataclass(frozen=True)
@@ -172,8 +170,8 @@ class _LoopGrasp:
             fw.transact(line.encode() + b"\r")
         self._spread = self.layout.feedback_fields.index((SPREAD_MOTOR, "LFAP"))
         self._finger_positions = {m: self.layout.feedback_fields.index((m, "LFAP")) for m in FINGER_MOTORS}
-        self.stalled = {m: False for m in FINGER_MOTORS}
-        self._history = []  # (time, {finger: LFAP}) of the last STALL_WINDOW_S
+        self.stalls = StalledFingers()
+        self.stalled = self.stalls.stalled
         self._strains = [i for i, (m, name) in enumerate(self.layout.feedback_fields) if name == "LFS" and m != SPREAD_MOTOR]
         self.spread_position = 0
         self.max_strain = 0
@@ -202,20 +200,9 @@ class _LoopGrasp:
         self.max_strain = max(self.max_strain, *(feedback[i] for i in self._strains))
 
     def _note_stalls(self, feedback) -> None:
-        """A finger that has closed STALL_START_COUNTS and then moved less than STALL_COUNTS in
-        STALL_WINDOW_S has stalled: it gets LCV 0 from then on, and its worm holds it (§9.3.1)."""
-        now = self.fw.time
-        positions = {m: feedback[i] for m, i in self._finger_positions.items()}
-        history = self._history
-        history.append((now, positions))
-        while len(history) > 1 and now - history[1][0] >= STALL_WINDOW_S:
-            history.pop(0)  # history[0] is the newest entry at least STALL_WINDOW_S old
-        then, before = history[0]
-        if now - then < STALL_WINDOW_S:
-            return
-        for m, position in positions.items():
-            if position >= STALL_START_COUNTS and abs(position - before[m]) < STALL_COUNTS:
-                self.stalled[m] = True
+        """A finger that has stalled (`StalledFingers`: the firmware's own rule at the default TSTOP)
+        gets LCV 0 from then on, and its worm holds it (§9.3.1)."""
+        self.stalls.update(self.fw.time, {m: feedback[i] for m, i in self._finger_positions.items()})
 
     def run_for(self, seconds: float, wrist=None) -> None:
         """Cycles for `seconds`; `wrist(elapsed)`, if given, is where the arm puts the wrist at the

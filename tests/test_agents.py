@@ -863,3 +863,24 @@ def test_eval_reports_each_object_set_and_family(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| **validation** | all | 2 |" in printed and "| **primitives-validation** | all | 2 |" in printed
     assert main(["eval", "--baseline", "loop", "--objects", " , ", "--episodes", "1"]) == 2
+
+
+def test_stalled_fingers_follow_the_firmwares_stall_rule_and_stay_stalled():
+    """§5.5 case 1 at the default TSTOP, as a host sees it in LFAP: a finger that has closed 1000
+    counts and then moved under 10 counts in 30 ms has stalled (and stays so: its worm holds it,
+    §9.3.1); one still moving, or standing before it has closed 1000 counts, has not."""
+    from bh8_gym.agents.baselines import StalledFingers
+
+    watch = StalledFingers()
+    dt = 0.004  # a cycle
+    positions = {1: 0, 2: 0, 3: 0}
+    for k in range(40):  # F1 closes on and stops at 5000; F2 keeps closing; F3 stands at 500
+        positions = {1: min(5000, 400 * k), 2: 300 * k, 3: 500}
+        stalled = watch.update(k * dt, positions)
+        if 400 * k < 5000:
+            assert not stalled[1]
+    assert stalled == {1: True, 2: False, 3: False}
+    for k in range(40, 60):  # F1 moves again (a reading after a stall does not unlock it)
+        assert watch.update(k * dt, {1: 5000 + 50 * k, 2: 300 * k, 3: 500})[1]
+    watch.reset()
+    assert not any(watch.stalled.values())

@@ -41,3 +41,20 @@ def test_a_loop_grasp_that_stops_driving_stalled_fingers_holds_the_pinched_cylin
     assert held["slip_mm"] < 2.0 and held["rotation_deg"] < 5.0
     driven_on = bench_hold.run_trial(bench_hold.Trial(**{**trial.__dict__, "lock_stalled": False}))
     assert not driven_on["kept"] or driven_on["slip_mm"] > 10.0
+
+
+def test_pads_contact_patches_keep_a_pinched_capsule_from_pivoting(bench_hold):
+    """A 4 cm, 240 g capsule at friction 1.15 (placement 1 of `--shapes capsule`, seed 0) pinched
+    by two fingers (the third misses it): with point contacts (the default) it turns about the line
+    through the two contacts under its weight through the 5 s hold; with 4 mm pads' contact patches
+    (`finger_pad_radius`, a turn about the contact normal resisted up to (2/3)·mu·N·a) it stays."""
+    from bh8_gym.plant import PlantParameters
+
+    trial = bench_hold.trials(["capsule"], placements=15, shake=False, seed=0, mode="loop")[1]
+    assert trial.size == 0.04 and trial.lock_stalled
+    patches = bench_hold.run_trial(trial, PlantParameters(finger_pad_radius=0.004))
+    assert patches["closed"] and patches["kept"] and not patches["all_three"]
+    assert patches["slip_mm"] < 1.0 and patches["rotation_deg"] < 3.0
+    points = bench_hold.run_trial(trial)
+    assert points["closed"] and points["kept"] and not points["all_three"]
+    assert points["slip_mm"] > 1.5 and points["rotation_deg"] > 5.0

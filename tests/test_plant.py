@@ -382,3 +382,27 @@ def test_locked_finger_reads_its_hold_position(plant):
     run(plant, 0.5, lambda: readings.append(plant.motor_positions()[2]))
     assert held > 5_000.0 and np.all(np.array(readings) == held)
     assert plant.motor_velocities()[2] == 0.0
+
+
+def test_finger_pads_resist_a_turn_about_the_contact_normal_as_a_patch_does(plant):
+    """A rubber pad pressed on an object is a patch, not a point: a uniform circular patch of radius a
+    carries up to (2/3)·mu·N·a about its normal (`finger_pad_radius`, docs/modelling.md). PyBullet
+    multiplies a link's torsional friction by the other body's lateral friction, so the finger links
+    get (2/3)·a·finger_friction (the palm none), and a randomised finger friction keeps the two in step."""
+    from dataclasses import replace as with_fields
+
+    def spinning(link):
+        return p.getDynamicsInfo(plant.hand_id, link, physicsClientId=plant.client)[7]
+
+    fingers = [index for name, index in plant._link_index_by_name.items() if name.startswith("f")]
+    assert len(fingers) >= 6
+    assert all(spinning(link) == 0.0 for link in fingers)  # off by default: point contacts
+    plant.set_parameters(with_fields(plant.params, finger_pad_radius=0.004))
+    a, mu = plant.params.finger_pad_radius, plant.params.finger_friction
+    for link in fingers:
+        assert spinning(link) == pytest.approx(2.0 / 3.0 * a * mu)
+    assert spinning(-1) == 0.0
+    plant.set_parameters(with_fields(plant.params, finger_friction=0.5, finger_pad_radius=0.003))
+    assert spinning(fingers[0]) == pytest.approx(2.0 / 3.0 * 0.003 * 0.5)
+    with pytest.raises(PlantError, match="finger_pad_radius"):
+        plant.set_parameters(with_fields(plant.params, finger_pad_radius=0.02))  # wider than the finger

@@ -131,9 +131,10 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         p.setGravity(0.0, 0.0, -prm.gravity, physicsClientId=cid)
         p.setPhysicsEngineParameter(numSolverIterations=prm.solver_iterations,
                                     solverResidualThreshold=prm.solver_residual_threshold, physicsClientId=cid)
+        pad_torsion = 2.0 / 3.0 * prm.finger_pad_radius * prm.finger_friction  # the pad's patch (parameters.py)
         for link, unit_mass in zip(self._links, self._unit_masses):
             friction = prm.palm_friction if link == -1 else prm.finger_friction
-            spinning = 0.0 if link == -1 else prm.finger_spinning_friction
+            spinning = 0.0 if link == -1 else pad_torsion
             p.changeDynamics(hand, link, lateralFriction=friction, mass=unit_mass * prm.link_mass_scale,
                              spinningFriction=spinning, frictionAnchor=int(prm.friction_anchors), physicsClientId=cid)
         if self.table_id is not None:

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from bh8_gym.hand_urdf import FINGER_WIDTH
 from bh8_gym.settings import dataclass_from, matches_annotation
 
 from bh8_gym.plant.joints import _DEG
+
 
 class PlantError(ValueError):
     """A bad argument to the plant's API (names the offending value)."""
@@ -120,11 +122,16 @@ class PlantParameters:
     # a held object does not creep through solver error (without them a worm-locked grasp slipped 9 mm
     # and turned 33° in 5 s).
     friction_anchors: bool = True
-    # m: PyBullet's torsional friction (torque per newton of normal force) of the finger links' contacts.
-    # The rubber pads are areas, not points (a 4 mm patch at friction 0.8 resists about 0.002 N·m per N),
-    # but with friction anchors a pinched object does not turn about the line between its contacts
-    # anyway (benchmarks/bench_hold.py), and each torsional row costs 12 % of the grasp env's speed: off.
-    finger_spinning_friction: float = 0.0
+    # m: radius of the contact patch a finger link's rubber pad makes on an object (0: point contacts). A
+    # point contact (PyBullet's) resists no turn about its normal, so an object pinched between two
+    # fingertips can pivot about the line through the contacts under its own weight (bench_hold.py --mode
+    # loop). A pad pressed flat resists it: a uniform circular patch of radius a carries up to (2/3)·mu·N·a.
+    # Hertz's estimate for a rubber pad (E about 3 MPa) pressed with 10-30 N on a 4-8 cm object: a = 3-6 mm.
+    # The links get PyBullet's torsional friction (2/3)·a·finger_friction, which PyBullet multiplies by the
+    # other body's friction: (2/3)·a·mu for the pair. Off: at 4 mm fingertips pressed on the table at full
+    # LOOP torque chatter (tests/test_table_contact.py; at 2 mm less, still over its limit), and the pinch's
+    # creep in bench_hold is the solver's early stop, not too little torsional friction (docs/modelling.md).
+    finger_pad_radius: float = 0.0
     link_mass_scale: float = 1.0  # scales every hand link's mass (randomisation)
 
     # World.
@@ -154,5 +161,8 @@ class PlantParameters:
             raise PlantError(f"solver_residual_threshold must be >= 0, got {self.solver_residual_threshold!r}")
         if not self.preload_release_counts > 0.0:
             raise PlantError(f"preload_release_counts must be > 0, got {self.preload_release_counts!r}")
+        if not 0.0 <= self.finger_pad_radius <= FINGER_WIDTH / 2:  # a patch no wider than the finger
+            raise PlantError(f"finger_pad_radius must be 0 to {FINGER_WIDTH / 2:g} m (half a finger's width), "
+                             f"got {self.finger_pad_radius!r}")
         if not self.worm_slack >= 0.0:
             raise PlantError(f"worm_slack must be >= 0, got {self.worm_slack!r}")
