@@ -134,3 +134,31 @@ def test_a_tall_object_keeps_the_rigid_approach():
         assert np.max(np.abs(np.array(heights) - start)) < 5e-4
     finally:
         env.close()
+
+
+def test_an_episode_cut_short_in_the_press_leaves_no_trace_in_the_next():
+    """Determinism (docs/envs.md's contract): a safety stop during the press ends the episode with the
+    arm's press still set; the next reset starts the arm afresh, so a seed's trajectory is the same
+    after it as in a new env."""
+    def first_steps(env, steps=40):
+        script = make_script("loop", env)
+        obs, info = env.reset(seed=0)
+        heights = []
+        for _ in range(steps):
+            obs, *_, info = env.step(script.act(obs, info))
+            heights.append(env.unwrapped.plant.wrist_pose()[0][2])
+        return heights
+
+    fresh = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
+    used = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
+    try:
+        script = make_script("loop", used)  # full gain on a box this low: a safety stop in the grasp
+        obs, info = used.reset(seed=0)
+        terminated = False
+        while not terminated:
+            obs, _, terminated, _, info = used.step(script.act(obs, info))
+        assert "safety_stop" in info and used.unwrapped.plant.step_hook is not None
+        assert first_steps(used) == first_steps(fresh)
+    finally:
+        fresh.close()
+        used.close()

@@ -147,7 +147,6 @@ class GraspScene:
         #: planned start (metres) and the least it may take (the knuckles clear of the object's top).
         self.table_contact = False
         self.press_rise = 0.0
-        self.plant.step_hook = None
         self._lowest_rise = 0.0
         self._hand_links = range(-1, pybullet.getNumJoints(plant.hand_id, physicsClientId=self.client))
         plant.set_wrist_pose(self.wrist_start, WRIST_PALM_DOWN, teleport=True)
@@ -221,6 +220,7 @@ class GraspScene:
             palm_above_table = max(wrap, self.placement.min_palm_above_table)
             self._lowest_rise = 0.0
         self.press_rise = 0.0
+        self.plant.step_hook = None  # the arm's clock starts at the next cycle (an episode cut short left it set)
         self.table_top = self.palm_height - palm_above_table
         p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
                                           physicsClientId=client)
