@@ -5,7 +5,9 @@ that span closing velocity, gain, spread, strain target and softness) runs on th
 
 - the best single script (what a lab gets by picking one script on these objects),
 - the best script per object family (an oracle told the family: "balls like this, boxes like that"),
-- the union: episodes some script of the family holds (an oracle told the episode).
+- the union: episodes some script of the family holds (an oracle told the episode);
+- each of them again on the episodes whose object is lower than LOW_OBJECT_HEIGHT at rest (the
+  ones the arm's table-contact grasp is for, envs/scenes.py), when the record has the heights.
 
 The union minus the best single script is the room a policy that picks its grasp per object can
 win; `benchmarks/bench_ceiling.py` measures it and the README's results table reports it beside
@@ -28,6 +30,10 @@ from bh8_gym.agents.run_files import write_json_atomic
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
 
+#: Metres: the summary's split of low objects (issue 28's target: the best script holds half of them).
+LOW_OBJECT_HEIGHT = 0.03
+
+
 @dataclass
 class CeilingRecord:
     """Which script held which episode of one object set (episodes from `seed` on)."""
@@ -37,6 +43,8 @@ class CeilingRecord:
     objects: list[str]
     families: list[str]
     success: dict[str, list[bool]] = field(default_factory=dict)
+    #: Each episode's object height at rest, metres (empty in records made before it was kept).
+    heights: list[float] = field(default_factory=list)
 
     @property
     def episodes(self) -> int:
@@ -56,10 +64,13 @@ class CeilingRecord:
     def from_json(cls, data: dict) -> "CeilingRecord":
         record = cls(str(data["object_set"]), int(data["seed"]), [str(o) for o in data["objects"]],
                      [str(f) for f in data["families"]],
-                     {str(k): [bool(s) for s in v] for k, v in data["success"].items()})
+                     {str(k): [bool(s) for s in v] for k, v in data["success"].items()},
+                     [float(h) for h in data.get("heights", [])])
         for name, row in record.success.items():
             if len(row) != record.episodes:
                 raise ValueError(f"ceiling record: script {name!r} has {len(row)} episodes, not {record.episodes}")
+        if record.heights and len(record.heights) != record.episodes:
+            raise ValueError(f"ceiling record: {len(record.heights)} heights for {record.episodes} episodes")
         return record
 
 
@@ -78,11 +89,22 @@ def run_scripts(names: Iterable[str], object_set: str, episodes: int, seed: int,
                 record = CeilingRecord(object_set, seed, [r.object_name for r in results],
                                        [r.family for r in results])
             record.success[name] = [r.success for r in results]
+        if record is not None:  # after the scripts: each reset places the episode's object again
+            record.heights = episode_heights(env, episodes, seed)
     finally:
         env.close()
     if record is None:
         raise ValueError("no script to run")
     return record
+
+
+def episode_heights(env, episodes: int, seed: int) -> list[float]:
+    """The height at rest (metres) of each episode's object in `env` (reset, not run)."""
+    heights = []
+    for episode in range(episodes):
+        env.reset(seed=seed + episode)
+        heights.append(float(env.unwrapped.scene.object_extents[2]))
+    return heights
 
 
 def episode_objects(object_set: str, episodes: int, seed: int) -> tuple[list[str], list[str]]:
@@ -115,10 +137,17 @@ def summarize_ceiling(record: CeilingRecord, scripts: Sequence[str] | None = Non
         top = max(names, key=lambda name: (held[name], -names.index(name)))
         per_family[family] = {"episodes": len(rows), "best_script": top, "held": held[top],
                               "union": sum(union[i] for i in rows), "best_single_held": held[best]}
+    low = None
+    if record.heights:
+        rows = [i for i, height in enumerate(record.heights) if height < LOW_OBJECT_HEIGHT]
+        held = {name: sum(record.success[name][i] for i in rows) for name in names}
+        top = max(names, key=lambda name: (held[name], -names.index(name)))
+        low = {"episodes": len(rows), "best_script": top, "held": held[top],
+               "union": sum(union[i] for i in rows), "best_single_held": held[best]}
     return {"object_set": record.object_set, "seed": record.seed, "episodes": record.episodes,
             "scripts": counts, "best_single": best, "best_single_held": counts[best],
             "per_family_best_held": sum(f["held"] for f in per_family.values()),
-            "union_held": sum(union), "per_family": per_family}
+            "union_held": sum(union), "per_family": per_family, "low_objects": low}
 
 
 def teacher_choice(record: CeilingRecord, preference: Sequence[str]) -> list[str | None]:

@@ -3,8 +3,9 @@
 Runs every script of the ceiling family (agents/ceiling.py: LOOP and squeeze grasps at settings
 spanning closing velocity, gain, spread, strain target and softness; all object-blind) on the same
 episodes of each object set, and prints per set: each script's count, the best single script, the
-best script per object family (an oracle told the family), and the union (an oracle told the
-episode: some script holds it). With `--policy`, a `bh8 eval --out` report (or several) on the same
+best script per object family (an oracle told the family), the union (an oracle told the
+episode: some script holds it), and the same on the objects lower than 3 cm at rest (the ones the
+arm's table-contact grasp is for). With `--policy`, a `bh8 eval --out` report (or several) on the same
 episodes is set beside them and paired with the best single script (exact McNemar test).
 
 Run: python benchmarks/bench_ceiling.py --sets primitives-test test --episodes 1000 --jobs 2 \
@@ -26,6 +27,7 @@ from pathlib import Path
 
 from bh8_gym.agents.baselines import FAMILY
 from bh8_gym.agents.ceiling import (
+    LOW_OBJECT_HEIGHT,
     CeilingRecord,
     load_records,
     run_scripts,
@@ -75,6 +77,10 @@ def markdown(summary: dict, policies: dict[str, list[bool]], record: CeilingReco
     for family, row in summary["per_family"].items():
         lines.append(f"| {family} | {row['episodes']} | {row['best_script']} | {row['held']} | "
                      f"{row['best_single_held']} | {row['union']} |")
+    low = summary["low_objects"]
+    if low is not None:
+        lines.append(f"| lower than {LOW_OBJECT_HEIGHT * 100:g} cm at rest | {low['episodes']} | {low['best_script']} | "
+                     f"{low['held']} | {low['best_single_held']} | {low['union']} |")
     return "\n".join(lines)
 
 

@@ -31,6 +31,22 @@ def test_the_summary_counts_best_single_per_family_and_union():
     assert summarize_ceiling(_record(), ["b", "c"])["union_held"] == 3
 
 
+def test_the_summary_splits_the_objects_lower_than_3_cm():
+    """Issue 28's target is on the objects lower than 3 cm at rest: the best script on those, the
+    overall best single script's count on them, and the union there; none without heights."""
+    assert summarize_ceiling(_record())["low_objects"] is None
+    record = _record()
+    record.heights = [0.01, 0.02, 0.05, 0.025, 0.06, 0.04]  # episodes 0, 1, 3 are low
+    low = summarize_ceiling(record)["low_objects"]
+    assert low == {"episodes": 3, "best_script": "a", "held": 2, "union": 3, "best_single_held": 2}
+    assert summarize_ceiling(record, ["b", "c"])["low_objects"]["held"] == 2
+    assert CeilingRecord.from_json(json.loads(json.dumps(record.to_json()))) == record
+    bad = record.to_json()
+    bad["heights"] = [0.01]
+    with pytest.raises(ValueError, match="1 heights"):
+        CeilingRecord.from_json(bad)
+
+
 def test_records_round_trip_and_refuse_other_episodes(tmp_path):
     record = _record()
     save_records([record], tmp_path / "ceiling.json")

@@ -726,7 +726,9 @@ def test_the_arm_places_the_hand_as_a_top_down_pick_pipeline():
     position error), the fingers close across its narrowest width (a box's shorter side along the
     hand's y axis, F3 opposite F1-F2), the knuckles stop `clearance` above the estimated top
     (within top_error), and never lower than the fingers' sweep plus the margin
-    (hand_urdf.FINGER_SWEEP_DEPTH): fingertips clear the table."""
+    (hand_urdf.FINGER_SWEEP_DEPTH): fingertips clear the table. An object lower than
+    `table_contact_below` gets the table-contact grasp instead (tests/test_arm_press.py): the palm
+    lower, never the knuckles into the object."""
     from bh8_gym.envs.objects import ObjectSet
     from bh8_gym.objects import ObjectSpec
     from bh8_gym.envs.scenes import GraspEpisode, PlacementRanges
@@ -745,8 +747,13 @@ def test_the_arm_places_the_hand_as_a_top_down_pick_pipeline():
             assert widths[1] == pytest.approx(min(size[:2]), abs=2e-3), size  # across the closing axis
             assert ((low[0] + high[0]) / 2, (low[1] + high[1]) / 2) == pytest.approx((0.01, -0.005), abs=1e-6)
             palm_above_table = scene.palm_height - scene.table_top
-            expected = max(size[2] - 0.003 + KNUCKLE_HEIGHT + 0.012, FINGER_SWEEP_DEPTH + placement.fingertip_margin)
-            assert palm_above_table == pytest.approx(expected, abs=1e-9)
+            wrap = size[2] - 0.003 + KNUCKLE_HEIGHT + 0.012
+            assert scene.table_contact == (size[2] - 0.003 < placement.table_contact_below)
+            if scene.table_contact:
+                assert wrap <= palm_above_table < FINGER_SWEEP_DEPTH
+            else:
+                expected = max(wrap, FINGER_SWEEP_DEPTH + placement.fingertip_margin)
+                assert palm_above_table == pytest.approx(expected, abs=1e-9)
         rng = np.random.default_rng(0)
         draws = [scene.sample_episode(rng) for _ in range(200)]
         assert all(abs(d.top_error) <= placement.top_error for d in draws)

@@ -3,6 +3,11 @@
 A host knows it (the robot arm runs the same grasp/lift/hold schedule on the real hand), so it is
 host-side: the observation's phase entries come from it, and the simulated scene moves the wrist
 along it (`scenes.GraspScene.cycle_hook`).
+
+For a low object the arm is compliant in z during the grasp (`ArmSchedule.press_rise`: a
+surface-constrained grasp, as a back-drivable arm such as Barrett's WAM does it): it comes down until
+the hand touches the table and then holds `press_force` down, so a closing fingertip pressed on the
+table lifts the hand and slides along the table under the object's base instead of stalling.
 """
 from __future__ import annotations
 
@@ -24,6 +29,17 @@ class ArmSchedule:
     lift_height: float = 0.10  # metres
     shake_amplitude: float = 0.0  # metres, horizontal (x) sinusoid during hold; 0 = no shake
     shake_frequency: float = 2.0  # Hz
+    # The table-contact grasp (low objects, scenes.PlacementRanges.table_contact_below): the arm is an
+    # admittance in z. It holds `press_force` newtons down on whatever the hand touches, beyond the
+    # hand's weight (which it carries): a quarter of one finger's 2 kg tip payload (manual App. A),
+    # so a single finger on the table lifts the hand long before it stalls, and far inside a WAM's
+    # 3-4 kg payload (Barrett's published figure; any arm with a wrist force sensor can hold it).
+    press_force: float = 5.0  # N
+    # m/s the wrist moves per newton the measured force differs from press_force, up to
+    # press_speed: 10 N over press_force rises at 0.2 m/s, about the fingertips' fastest descent
+    # when a LOOP close at full speed sweeps them down (so the press stays a few newtons).
+    press_admittance: float = 0.02  # (m/s)/N
+    press_speed: float = 0.25  # m/s
 
     PHASES = ("grasp", "lift", "hold")
 
@@ -33,6 +49,9 @@ class ArmSchedule:
                 raise ValueError(f"ArmSchedule.{name} must be > 0, got {getattr(self, name)!r}")
         if not (self.lift_height >= 0 and self.shake_amplitude >= 0 and self.shake_frequency > 0):
             raise ValueError(f"invalid ArmSchedule {self!r}")
+        if not (0 <= self.press_force <= 50 and self.press_admittance > 0 and 0 < self.press_speed <= 2):
+            raise ValueError(f"ArmSchedule needs press_force 0-50 N, press_admittance > 0 and press_speed "
+                             f"0-2 m/s, got {self!r}")
 
     @property
     def total_seconds(self) -> float:
@@ -60,3 +79,11 @@ class ArmSchedule:
             s = tau / self.lift_seconds
             return 0.0, self.lift_height * s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
         return self.shake_amplitude * sin(2.0 * pi * self.shake_frequency * tau), self.lift_height
+
+    def press_rise(self, rise: float, force: float, seconds: float, lowest: float) -> float:
+        """The table-contact grasp's wrist height over its planned start (metres, `rise`) after
+        `seconds` more with the hand pushed up by `force` newtons (its contacts, not its weight):
+        up while the force exceeds press_force, down (a guarded move) while it is less, never below
+        `lowest`."""
+        speed = min(max((force - self.press_force) * self.press_admittance, -self.press_speed), self.press_speed)
+        return max(rise + speed * seconds, lowest)

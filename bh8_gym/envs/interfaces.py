@@ -9,6 +9,7 @@ policy file's metadata, on a computer that has only the hand. The simulator's ke
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Mapping, Sequence
 
 import gymnasium as gym
@@ -77,8 +78,7 @@ def grasp_arm(arm: ArmSchedule | Mapping | None = None, shake: bool = False) -> 
     check_switch("shake", shake)
     arm = dataclass_from(ArmSchedule, arm, "arm")
     if shake and arm.shake_amplitude == 0.0:
-        arm = ArmSchedule(arm.grasp_seconds, arm.lift_seconds, arm.hold_seconds, arm.lift_height,
-                          SHAKE_AMPLITUDE, arm.shake_frequency)
+        arm = replace(arm, shake_amplitude=SHAKE_AMPLITUDE)
     return arm
 
 

@@ -17,6 +17,11 @@ rest (`resting.resting_orientation`: a mesh is set down in the pose it settles i
 palm on the object's footprint, turns the hand so that the fingers close across the footprint's
 narrowest width (F3 opposite F1 and F2 along the hand's y axis, the object's longest side along
 F1-F2), and stops the palm above the object's estimated top; each with the pipeline's error.
+It chooses the arm's behaviour from the object's height at rest: an object lower than
+`PlacementRanges.table_contact_below` gets the table-contact grasp (the palm starts with the open
+fingertips just over the table and the arm holds `ArmSchedule.press_force` down through the grasp,
+so the closing fingertips lift the hand and slide along the table to the object's base); a taller
+one the rigid approach, whose fingers' sweep clears the table.
 """
 from __future__ import annotations
 
@@ -63,10 +68,18 @@ class PlacementRanges:
     clearance: tuple[float, float] = (0.005, 0.02)
     # Above the table, the deepest point of the closing fingers' sweep: metres.
     fingertip_margin: float = 0.005
+    # Objects lower than this at rest (metres, as the pipeline estimates it) get the table-contact
+    # grasp; 0 turns it off. 3 cm: below it the rigid approach meets the object only near its top
+    # or not at all (the fingers' sweep, FINGER_SWEEP_DEPTH, is 10 cm deep and clears the table).
+    table_contact_below: float = 0.03
+    # In the table-contact grasp the palm starts with the open hand's lowest point this far above
+    # the table (metres): the arm's guarded move covers it in the first cycles.
+    table_contact_margin: float = 0.003
 
     def __post_init__(self):
         if not (self.position_error >= 0 and self.yaw_error >= 0 and self.top_error >= 0
-                and self.fingertip_margin >= 0):
+                and self.fingertip_margin >= 0 and self.table_contact_below >= 0
+                and self.table_contact_margin >= 0):
             raise ValueError(f"PlacementRanges errors and margins must be >= 0, got {self!r}")
         if not (len(self.clearance) == 2 and self.top_error <= self.clearance[0] <= self.clearance[1]):
             raise ValueError(f"PlacementRanges.clearance must be (low, high) with top_error <= low <= high, "
@@ -91,6 +104,10 @@ class GraspEpisode:
     object_yaw: float  # radians: the pipeline's yaw error (the object turned from its grasp yaw)
     clearance: float
     top_error: float = 0.0  # metres: the pipeline's estimate of the object's top minus the truth
+
+    def table_contact(self, height: float, placement: PlacementRanges) -> bool:
+        """Whether the pipeline gives an object `height` metres tall at rest the table-contact grasp."""
+        return height + self.top_error < placement.table_contact_below
 
 
 class GraspScene:
@@ -126,6 +143,12 @@ class GraspScene:
         self._grasp_yaws: dict[tuple, float] = {}
         self.episode: GraspEpisode | None = None
         self.start_time: float | None = None
+        #: Whether this episode's arm does the table-contact grasp, and its wrist's height over the
+        #: planned start (metres) and the least it may take (the knuckles clear of the object's top).
+        self.table_contact = False
+        self.press_rise = 0.0
+        self._lowest_rise = 0.0
+        self._hand_links = range(-1, pybullet.getNumJoints(plant.hand_id, physicsClientId=self.client))
         plant.set_wrist_pose(self.wrist_start, WRIST_PALM_DOWN, teleport=True)
 
     @property
@@ -187,8 +210,17 @@ class GraspScene:
         self.object_extents = (high[0] - low[0], high[1] - low[1], height)
         bottom_offset = -5.0 - low[2]
         centre_x, centre_y = (low[0] + high[0]) / 2.0, (low[1] + high[1]) / 2.0  # the footprint's centre
-        palm_above_table = max(height + episode.top_error + KNUCKLE_HEIGHT + episode.clearance,
-                                self.placement.min_palm_above_table)
+        wrap = height + episode.top_error + KNUCKLE_HEIGHT + episode.clearance
+        self.table_contact = episode.table_contact(height, self.placement)
+        if self.table_contact:
+            # Down to the open hand's lowest point just over the table; never the knuckles into the object.
+            palm_above_table = max(wrap, self._hand_depth() + self.placement.table_contact_margin)
+            self._lowest_rise = wrap - palm_above_table
+        else:
+            palm_above_table = max(wrap, self.placement.min_palm_above_table)
+            self._lowest_rise = 0.0
+        self.press_rise = 0.0
+        self.plant.step_hook = None  # the arm's clock starts at the next cycle (an episode cut short left it set)
         self.table_top = self.palm_height - palm_above_table
         p.resetBasePositionAndOrientation(self.table, self._table_position(self.table_top), (0, 0, 0, 1),
                                           physicsClientId=client)
@@ -201,11 +233,31 @@ class GraspScene:
         self._wrist_target[:] = self.wrist_start
         self.plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
 
+    def _press(self) -> None:
+        """Before each physics step of a table-contact grasp: the arm's admittance in z."""
+        plant = self.plant
+        self.press_rise = self.arm.press_rise(self.press_rise, plant.contact_lift(), plant.dt, self._lowest_rise)
+        self._wrist_target[2] = self.wrist_start[2] + self.press_rise
+        plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
+
+    def _hand_depth(self) -> float:
+        """How far the hand's lowest point is below its palm face now (metres)."""
+        p, client, hand = self._p, self.client, self.plant.hand_id
+        lowest = min(p.getAABB(hand, link, physicsClientId=client)[0][2] for link in self._hand_links)
+        return self.palm_height - lowest
+
     def cycle_hook(self, firmware) -> None:
-        """Once per RealTime cycle: start the arm's clock, move the wrist along the schedule."""
+        """Once per RealTime cycle: start the arm's clock, move the wrist along the schedule (in a
+        table-contact grasp, pressing on what the hand touches until the lift)."""
         if self.start_time is None:
             self.start_time = firmware.time
-        dx, dz = self.arm.wrist_offset(firmware.time - self.start_time)
+        elapsed = firmware.time - self.start_time
+        pressing = self.table_contact and elapsed < self.arm.grasp_seconds
+        self.plant.step_hook = self._press if pressing else None  # the lift starts from where the press left it
+        if pressing:
+            return
+        dx, dz = self.arm.wrist_offset(elapsed)
+        dz += self.press_rise
         if dx or dz:
             self._wrist_target[0] = self.wrist_start[0] + dx
             self._wrist_target[2] = self.wrist_start[2] + dz

@@ -51,6 +51,9 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         if self._client < 0:
             raise RuntimeError("PyBullet could not connect (gui=True needs a display)")
         self._saved: dict[int, _PlantState] = {}
+        #: Called before every physics step when set: an arm controller that runs at the physics rate
+        #: (the grasp scene's table-contact press); not the hand's, and not part of a saved state.
+        self.step_hook = None
         try:
             self._build_world()
         except Exception:
@@ -197,6 +200,8 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
 
     def step(self) -> None:
         """Advance one physics step of `dt` seconds."""
+        if self.step_hook is not None:
+            self.step_hook()
         self._command_joints()
         state = self._state
         client = self._client

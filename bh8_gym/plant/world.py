@@ -91,6 +91,13 @@ class World:
             return list(p.getContactPoints(bodyA=body_a, physicsClientId=self._client))
         return list(p.getContactPoints(bodyA=body_a, bodyB=body_b, physicsClientId=self._client))
 
+    def contact_lift(self) -> float:
+        """The upward force (N) on the hand from its contacts with other bodies in the last step:
+        what a wrist force sensor reads beyond the hand's weight (normal forces; a table's
+        friction on the hand is horizontal)."""
+        hand = self.hand_id
+        return sum(c[9] * c[7][2] for c in p.getContactPoints(bodyA=hand, physicsClientId=self._client) if c[2] != hand)
+
     def link_index(self, name: str) -> int:
         """PyBullet's index of the hand's link `name` (hand_urdf's names; the palm is -1)."""
         return self._link_index_by_name[name]
