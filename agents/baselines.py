@@ -88,11 +88,12 @@ class LoopBaseline(_LoopScript):
     `lock_stalled`: LCV 0 for a finger once it has stalled (`StalledFingers`), so its worm holds the
     squeeze it had instead of the motor working its links against the object (on `primitives-validation`,
     100 episodes from seed 100000: 76 held against 73 driven on, every one of those 73 among them).
+    Off by default: every figure of the `loop` grasp (the README, the ceiling) was measured driven on.
     """
 
     def __init__(self, env, close_velocity: int = 100, gain: int = 255, spread_gain: float = 0.1,
                  spread_tolerance: int = 30, spread: int = GRASP_SPREAD, strain_limit: int | None = None,
-                 limit_gain: float = 2.0, capped_gain: int | None = None, lock_stalled: bool = True):
+                 limit_gain: float = 2.0, capped_gain: int | None = None, lock_stalled: bool = False):
         super().__init__(env)
         self.stalls = StalledFingers() if lock_stalled else None
         self.spread = int(spread)
@@ -326,17 +327,15 @@ SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts
 
 # The ceiling family (agents/ceiling.py measures it): name -> (baseline, its settings). Every script is
 # object-blind: it reads only the feedback blocks.
-# The other LOOP scripts drive a stalled finger on, as they were measured (the lock: `loop` only, LoopBaseline).
-_DRIVEN_ON = {"lock_stalled": False}
 FAMILY: dict[str, tuple[str, dict]] = {
     "loop": ("loop", {}),
-    "loop-g80": ("loop", {"gain": 80, **_DRIVEN_ON}),
-    "loop-g160": ("loop", {"gain": 160, **_DRIVEN_ON}),
-    "loop-v50": ("loop", {"close_velocity": 50, **_DRIVEN_ON}),
-    "loop-v50-g80": ("loop", {"close_velocity": 50, "gain": 80, **_DRIVEN_ON}),
-    "loop-v70": ("loop", {"close_velocity": 70, **_DRIVEN_ON}),
-    "loop-s60": ("loop", {"spread": SPREAD_60, **_DRIVEN_ON}),
-    "loop-v50-s60": ("loop", {"close_velocity": 50, "spread": SPREAD_60, **_DRIVEN_ON}),
+    "loop-g80": ("loop", {"gain": 80}),
+    "loop-g160": ("loop", {"gain": 160}),
+    "loop-v50": ("loop", {"close_velocity": 50}),
+    "loop-v50-g80": ("loop", {"close_velocity": 50, "gain": 80}),
+    "loop-v70": ("loop", {"close_velocity": 70}),
+    "loop-s60": ("loop", {"spread": SPREAD_60}),
+    "loop-v50-s60": ("loop", {"close_velocity": 50, "spread": SPREAD_60}),
     "squeeze": ("squeeze", {}),
     "squeeze-g255": ("squeeze", {"close_gain": 255}),  # closes as "loop" does until each finger touches
     "squeeze-t180": ("squeeze", {"strain_target": 180}),

@@ -9,10 +9,11 @@ arm's table-contact grasp is for). With `--policy`, a `bh8 eval --out` report (o
 episodes is set beside them and paired with the best single script (exact McNemar test).
 
 Run: python benchmarks/bench_ceiling.py --sets primitives-test test --episodes 1000 --jobs 2 \
-         --out runs/ceiling [--randomize] [--policy runs/eval/results.json]
+         --out runs/ceiling [--randomize] [--table-contact] [--policy runs/eval/results.json]
 
 `--out` keeps ceiling.json (which script held which episode: `agents.ceiling.load_records`) and
-ceiling.md (with --randomize: ceiling-randomized.json and .md). Rerunning with the same --out
+ceiling.md (with --randomize: ceiling-randomized.json and .md; with --table-contact,
+ceiling-table-contact.*). Rerunning with the same --out
 reuses the scripts already recorded there and keeps the other sets' records. A --policy report is
 paired only when it holds at least the ceiling's episodes of a set from the same seed (else it says so).
 """
@@ -37,9 +38,15 @@ from bh8_gym.agents.ceiling import (
 from bh8_gym.agents.evaluate import paired_comparison
 
 
+# The arm's table-contact grasp for objects lower than 3 cm (envs/scenes.py PlacementRanges; off
+# in the env by default): --table-contact measures the family with it.
+TABLE_CONTACT = {"placement": {"table_contact_below": 0.03}}
+
+
 def _run(job):
-    name, object_set, episodes, seed, randomize = job
-    return run_scripts([name], object_set, episodes, seed, {"randomize": randomize}).to_json()
+    name, object_set, episodes, seed, randomize, table_contact = job
+    env_kwargs = {"randomize": randomize, **(TABLE_CONTACT if table_contact else {})}
+    return run_scripts([name], object_set, episodes, seed, env_kwargs).to_json()
 
 
 def _policy_outcomes(path: Path, object_set: str, record: CeilingRecord) -> list[bool] | None:
@@ -91,13 +98,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=100_000)
     parser.add_argument("--scripts", nargs="+", default=list(FAMILY), choices=list(FAMILY))
     parser.add_argument("--randomize", action="store_true", help="domain randomisation on")
+    parser.add_argument("--table-contact", action="store_true",
+                        help="the arm's table-contact grasp for objects lower than 3 cm (off in the env by default)")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--policy", type=Path, nargs="*", default=[], help="bh8 eval --out reports to pair")
     args = parser.parse_args()
 
     # Nominal and randomised physics are recorded apart: a script's outcomes under one are no answer for the other.
-    stem = "ceiling-randomized" if args.randomize else "ceiling"
+    stem = "ceiling" + ("-randomized" if args.randomize else "") + ("-table-contact" if args.table_contact else "")
     records, others = {}, []
     if args.out is not None and (args.out / f"{stem}.json").exists():
         for record in load_records(args.out / f"{stem}.json"):
@@ -105,7 +114,7 @@ def main() -> None:
                 records[record.object_set] = record
             else:
                 others.append(record)  # kept in the file as it was
-    jobs = [(name, object_set, args.episodes, args.seed, args.randomize) for object_set in args.sets
+    jobs = [(name, object_set, args.episodes, args.seed, args.randomize, args.table_contact) for object_set in args.sets
             for name in args.scripts if object_set not in records or name not in records[object_set].success]
     start = time.perf_counter()
     with ProcessPoolExecutor(max(1, args.jobs)) as pool:

@@ -18,6 +18,21 @@ from bh8_gym.objects import ObjectSpec
 
 LOW_BOX = ObjectSpec("box", (0.06, 0.04, 0.015), mass=0.1)
 TALL_BOX = ObjectSpec("box", (0.06, 0.04, 0.06), mass=0.1)
+ON = {"table_contact_below": 0.03}  # the measured setting (docs/envs.md); the default, 0, is off
+
+
+def test_the_table_contact_grasp_is_off_by_default():
+    """Off unless asked for: the default env approaches a low object as before, rigidly, its
+    fingers' sweep clear of the table."""
+    assert PlacementRanges().table_contact_below == 0.0
+    env = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
+    try:
+        env.reset(seed=0)
+        scene = env.unwrapped.scene
+        assert not scene.table_contact and scene.plant.step_hook is None
+        assert scene.palm_height - scene.table_top >= FINGER_SWEEP_DEPTH
+    finally:
+        env.close()
 
 
 def _grasp_phase(env, act, each=None) -> int:
@@ -61,7 +76,7 @@ def test_a_low_object_gets_the_table_contact_grasp_and_the_fingertips_lift_the_h
     (with the arm rigid at that height they stop before 4,000 counts, tests/test_table_contact.py), no
     clutch breaks away before the fingers pass the bottom of their sweep, and the hand presses down with
     about press_force on average."""
-    env = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
+    env = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False, "placement": ON})
     base = env.unwrapped
     scene, plant = base.scene, base.plant
     try:
@@ -94,7 +109,7 @@ def test_a_low_object_gets_the_table_contact_grasp_and_the_fingertips_lift_the_h
 def test_the_arm_comes_down_until_the_hand_touches_the_table_and_holds_its_press_force():
     """A guarded move: with the fingers not driven, the arm lowers the open hand the start margin onto
     the table and stops there, pressing press_force (averaged over the last 0.2 s)."""
-    env = gym.make("BH8Grasp-v0", object_files=[LOW_BOX], randomize=False)
+    env = gym.make("BH8Grasp-v0", object_files=[LOW_BOX], randomize=False, placement=ON)
     base = env.unwrapped
     scene, plant = base.scene, base.plant
     try:
@@ -118,7 +133,7 @@ def test_the_arm_comes_down_until_the_hand_touches_the_table_and_holds_its_press
 def test_a_tall_object_keeps_the_rigid_approach():
     """A 6 cm box: the palm stops with the knuckles over its top and the fingers' sweep clear of the
     table, and the arm holds the wrist still through the grasp."""
-    env = make_env("BH8Grasp-v0", {"object_files": [TALL_BOX], "randomize": False})
+    env = make_env("BH8Grasp-v0", {"object_files": [TALL_BOX], "randomize": False, "placement": ON})
     base = env.unwrapped
     scene, plant = base.scene, base.plant
     try:
@@ -149,8 +164,8 @@ def test_an_episode_cut_short_in_the_press_leaves_no_trace_in_the_next():
             heights.append(env.unwrapped.plant.wrist_pose()[0][2])
         return heights
 
-    fresh = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
-    used = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False})
+    fresh = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False, "placement": ON})
+    used = make_env("BH8Grasp-v0", {"object_files": [LOW_BOX], "randomize": False, "placement": ON})
     try:
         script = make_script("loop", used)  # full gain on a box this low: a safety stop in the grasp
         obs, info = used.reset(seed=0)

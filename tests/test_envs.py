@@ -734,10 +734,10 @@ def test_the_arm_places_the_hand_as_a_top_down_pick_pipeline():
     from bh8_gym.envs.scenes import GraspEpisode, PlacementRanges
     from bh8_gym.hand_urdf import FINGER_SWEEP_DEPTH, KNUCKLE_HEIGHT
 
-    env = gym.make("BH8Grasp-v0", randomize=False).unwrapped
+    env = gym.make("BH8Grasp-v0", randomize=False, placement={"table_contact_below": 0.03}).unwrapped
     try:
         scene, client = env.scene, env.plant.client
-        placement = PlacementRanges()
+        placement = PlacementRanges(table_contact_below=0.03)
         for size in ((0.08, 0.03, 0.06), (0.03, 0.08, 0.06), (0.05, 0.05, 0.015)):
             spec = ObjectSpec("box", size, mass=0.1)
             episode = GraspEpisode(spec, (0.01, -0.005), 0.0, clearance=0.012, top_error=-0.003)
