@@ -130,20 +130,18 @@ def summarize_ceiling(record: CeilingRecord, scripts: Sequence[str] | None = Non
     counts = {name: sum(record.success[name]) for name in names}
     best = max(names, key=lambda name: (counts[name], -names.index(name)))
     union = [any(record.success[name][i] for name in names) for i in range(record.episodes)]
-    per_family = {}
-    for family in sorted(set(record.families)):
-        rows = [i for i, f in enumerate(record.families) if f == family]
+
+    def subset(rows: list[int]) -> dict:
+        """The best script on the episodes `rows`, what it and the best single script hold there, and the union."""
         held = {name: sum(record.success[name][i] for i in rows) for name in names}
         top = max(names, key=lambda name: (held[name], -names.index(name)))
-        per_family[family] = {"episodes": len(rows), "best_script": top, "held": held[top],
-                              "union": sum(union[i] for i in rows), "best_single_held": held[best]}
-    low = None
-    if record.heights:
-        rows = [i for i, height in enumerate(record.heights) if height < LOW_OBJECT_HEIGHT]
-        held = {name: sum(record.success[name][i] for i in rows) for name in names}
-        top = max(names, key=lambda name: (held[name], -names.index(name)))
-        low = {"episodes": len(rows), "best_script": top, "held": held[top],
-               "union": sum(union[i] for i in rows), "best_single_held": held[best]}
+        return {"episodes": len(rows), "best_script": top, "held": held[top],
+                "union": sum(union[i] for i in rows), "best_single_held": held[best]}
+
+    per_family = {family: subset([i for i, f in enumerate(record.families) if f == family])
+                  for family in sorted(set(record.families))}
+    low = (subset([i for i, height in enumerate(record.heights) if height < LOW_OBJECT_HEIGHT])
+           if record.heights else None)
     return {"object_set": record.object_set, "seed": record.seed, "episodes": record.episodes,
             "scripts": counts, "best_single": best, "best_single_held": counts[best],
             "per_family_best_held": sum(f["held"] for f in per_family.values()),

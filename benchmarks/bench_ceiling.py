@@ -40,7 +40,7 @@ from bh8_gym.agents.evaluate import paired_comparison
 
 # The arm's table-contact grasp for objects lower than 3 cm (envs/scenes.py PlacementRanges; off
 # in the env by default): --table-contact measures the family with it.
-TABLE_CONTACT = {"placement": {"table_contact_below": 0.03}}
+TABLE_CONTACT = {"placement": {"table_contact_below": LOW_OBJECT_HEIGHT}}
 
 
 def _run(job):
