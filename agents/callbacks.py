@@ -9,8 +9,9 @@ from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.eval_worker import EvaluationWorker, predictor
-from bh8_gym.agents.evaluate import percent, run_episodes, summarize
+from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, predictor
+from bh8_gym.agents.episodes import run_episodes
+from bh8_gym.agents.evaluate import percent, summarize
 from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
 from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
@@ -34,9 +35,10 @@ class EvaluationCallback(BaseCallback):
         self.eval_freq = eval_freq
         self.n_episodes = n_episodes
         self.eval_seed = eval_seed
-        self._env = None
+        #: BATCH_ENVS validation envs, running episodes at once with one forward pass per step.
+        self._envs = []
         #: Half of each evaluation's episodes run in a worker process when training uses several
-        #: processes (agents/eval_worker.py; the same results); it ignores `ignore_signals`.
+        #: processes (agents/eval_worker.py: the same episodes); it ignores `ignore_signals`.
         self._worker = None
         self._ignore_signals = ignore_signals
         if state.get("next_evaluation", 0) <= 0:
@@ -60,13 +62,13 @@ class EvaluationCallback(BaseCallback):
             # Started by the first evaluation: it builds its env while this process runs its first episodes.
             self._worker = EvaluationWorker(config["env_id"], self.trainer.evaluation_env_kwargs,
                                             ignore_signals=self._ignore_signals)
-        if self._env is None:
-            self._env = make_env(config["env_id"], self.trainer.evaluation_env_kwargs)
+        if not self._envs:
+            self._envs = [make_env(config["env_id"], self.trainer.evaluation_env_kwargs) for _ in range(BATCH_ENVS)]
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
         if self._worker is not None:
-            results = self._worker.run(self.model, self._env, self.n_episodes, self.eval_seed)
+            results = self._worker.run(self.model, self._envs, self.n_episodes, self.eval_seed)
         else:
-            results = run_episodes(predictor(self.model), self._env, self.n_episodes, seed=self.eval_seed,
+            results = run_episodes(predictor(self.model), self._envs, self.n_episodes, seed=self.eval_seed,
                                    progress=self.trainer.progress)
         summary = summarize(results)
         row = {"timesteps": self.num_timesteps, **{key: summary[key] for key in EVALUATION_COLUMNS[1:]}}
@@ -86,9 +88,9 @@ class EvaluationCallback(BaseCallback):
         return summary
 
     def _on_training_end(self) -> None:
-        if self._env is not None:
-            self._env.close()
-            self._env = None
+        for env in self._envs:
+            env.close()
+        self._envs = []
         if self._worker is not None:
             self._worker.close()
             self._worker = None

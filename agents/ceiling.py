@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from bh8_gym.agents.baselines import make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.evaluate import object_name, run_episodes
+from bh8_gym.agents.episodes import object_name, run_episodes
 from bh8_gym.agents.run_files import write_json_atomic
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object

@@ -1,22 +1,33 @@
 """An evaluation's episodes split over two processes: the first half here, the second in a worker
-process with an env of its own.
+process with envs of its own; in each process several envs run episodes at once.
 
-Why: `bh8 train` evaluates its policy on 100 validation episodes at every evaluation, one env
-stepped in the training process while the second core idles; at the default config's eight
-evaluations that is about as many env steps as the training's own. Each episode is fixed by its
-seed (a seed replays exactly whatever the env ran before, tests/test_objects.py) and the policy
-is deterministic, so which process runs an episode changes nothing: the results are the ones
-`run_episodes` gives in one process, in the same order.
+Why: `bh8 train` evaluates its policy on 100 validation episodes at every evaluation, and `bh8 eval`
+runs hundreds of test episodes; in one process with one env the second core idles, and every step
+waits for a forward pass of the policy that costs about half an env step. Each episode is fixed by
+its seed (its object, placement and randomisation, tests/test_objects.py) and the policy is
+deterministic, so the results are those of `run_episodes` in one process with one env, in the same
+order, with one exception: an env's earlier episodes can change the order of PyBullet's contacts,
+so where the worker gave an env another history, a return may differ in its last digits (2 of
+200 grasp episodes, in the third digit; no success changed: docs/benchmarks.md, "Evaluation").
+
+What the worker runs is a job: `PolicyJob` (an SB3 policy, `bh8 train`), `PolicyFileJob` (a policy
+file, `bh8 eval`) or `ScriptJob` (a scripted grasp, `bh8 eval --baseline`).
 """
 from __future__ import annotations
 
 import multiprocessing as mp
 import signal
 import traceback
+from pathlib import Path
 
 from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.evaluate import run_episodes
+from bh8_gym.agents.episodes import run_episodes
+
+#: Envs per process that run a policy's episodes at once: a forward pass of a batch of 4
+#: observations costs about what one of 1 does, so it is paid once per 4 env steps
+#: (docs/benchmarks.md, "Evaluation").
+BATCH_ENVS = 4
 
 
 class EvaluationWorkerError(RuntimeError):
@@ -39,17 +50,78 @@ def predictor(model):
     return HostObservationModel(model) if host_observation_count(model) else model
 
 
-def _serve(remote, env_id: str, env_kwargs: dict, ignore_signals: tuple) -> None:
-    """The worker: builds its env at once (ready by the first evaluation), then answers each
-    (policy, n_episodes, seed) with ("ok", results) or ("error", traceback) until None."""
+def _without_gradients(policy):
+    """`policy` with the action distribution of its last forward pass dropped: after a pass with
+    gradients (behaviour cloning, a PPO update) it holds tensors that are not leaves of the graph,
+    which torch refuses to send to another process; the next forward pass rebuilds it."""
+    for holder in (policy, getattr(policy, "actor", None)):
+        distribution = getattr(holder, "action_dist", None)
+        if distribution is not None and hasattr(distribution, "distribution"):
+            distribution.distribution = None
+    return policy
+
+
+class PolicyJob:
+    """Episodes of an SB3 policy (a model's `policy`), deterministic."""
+
+    batched = True
+
+    def __init__(self, policy):
+        self.policy = _without_gradients(policy)
+
+    def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
+        return run_episodes(predictor(_PolicyModel(self.policy)), envs, n_episodes, seed=seed, **kwargs)
+
+
+class PolicyFileJob:
+    """Episodes of a policy file (`load_policy(path, trust)`), deterministic. `policy`: the file
+    already loaded in this process (not sent: the worker loads the file itself)."""
+
+    batched = True
+
+    def __init__(self, path, trust: bool = False, policy=None):
+        self.path, self.trust, self._policy = Path(path), bool(trust), policy
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_policy": None}
+
+    def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
+        if self._policy is None:
+            from bh8_gym.agents.policy_file import load_policy
+
+            self._policy = load_policy(self.path, trust=self.trust)
+        return run_episodes(self._policy, envs, n_episodes, seed=seed, **kwargs)
+
+
+class ScriptJob:
+    """Episodes of a scripted grasp: `agents.baselines.make_baseline(name)` or the ceiling family's
+    `make_script(name)`, on one env (a script keeps per-episode state on its env)."""
+
+    batched = False
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
+        from bh8_gym.agents.baselines import FAMILY, make_baseline, make_script
+
+        env = envs[0]
+        script = make_script(self.name, env) if self.name in FAMILY else make_baseline(self.name, env)
+        return run_episodes(None, env, n_episodes, seed=seed, baseline=script, **kwargs)
+
+
+def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: tuple) -> None:
+    """The worker: builds its envs at once (ready by the first evaluation), then answers each
+    (job, n_episodes, seed, kwargs) with ("ok", results) or ("error", traceback) until None."""
     import torch
 
     for signum in ignore_signals:
         signal.signal(signum, signal.SIG_IGN)
     torch.set_num_threads(1)  # as the training process: the same arithmetic, the same actions
-    env, failure = None, None
+    envs, failure = [], None
     try:
-        env = make_env(env_id, env_kwargs)
+        for _ in range(n_envs):
+            envs.append(make_env(env_id, env_kwargs))
     except Exception:  # noqa: BLE001 - the answer to every request
         failure = traceback.format_exc()
     while True:
@@ -62,52 +134,48 @@ def _serve(remote, env_id: str, env_kwargs: dict, ignore_signals: tuple) -> None
         try:
             if failure is not None:
                 raise RuntimeError(failure)
-            policy, n_episodes, seed = message
-            remote.send(("ok", run_episodes(predictor(_PolicyModel(policy)), env, n_episodes, seed=seed)))
+            job, n_episodes, seed, kwargs = message
+            remote.send(("ok", job.episodes(envs if job.batched else envs[:1], n_episodes, seed, **kwargs)))
         except Exception:  # noqa: BLE001 - reported to the training process, which raises it
             remote.send(("error", traceback.format_exc()))
-    if env is not None:
+    for env in envs:
         env.close()
     remote.close()
 
 
-def _without_gradients(policy):
-    """`policy` with the action distribution of its last forward pass dropped: after a pass with
-    gradients (behaviour cloning, a PPO update) it holds tensors that are not leaves of the graph,
-    which torch refuses to send to another process; the next forward pass rebuilds it."""
-    for holder in (policy, getattr(policy, "actor", None)):
-        distribution = getattr(holder, "action_dist", None)
-        if distribution is not None and hasattr(distribution, "distribution"):
-            distribution.distribution = None
-    return policy
-
-
 class EvaluationWorker:
-    """A process that runs episodes of `env_id` (`make_env(env_id, env_kwargs)`) with a policy sent
-    to it; `run` splits an evaluation between it and this process."""
+    """A process that runs episodes of `env_id` (`n_envs` envs built by `make_env(env_id,
+    env_kwargs)`) for a job sent to it; `run` splits an evaluation between it and this process."""
 
-    def __init__(self, env_id: str, env_kwargs: dict, ignore_signals: tuple = (), start_method: str | None = None):
+    def __init__(self, env_id: str, env_kwargs: dict, ignore_signals: tuple = (), start_method: str | None = None,
+                 n_envs: int = BATCH_ENVS):
         if start_method is None:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         context = mp.get_context(start_method)
         self._remote, work_remote = context.Pipe()
-        self.process = context.Process(target=_serve, args=(work_remote, env_id, dict(env_kwargs), tuple(ignore_signals)),
-                                       daemon=True)
+        self.process = context.Process(target=_serve, daemon=True,
+                                       args=(work_remote, env_id, dict(env_kwargs), int(n_envs), tuple(ignore_signals)))
         self.process.start()
         work_remote.close()
 
-    def run(self, model, env, n_episodes: int, seed: int) -> list:
-        """`run_episodes(predictor(model), env, n_episodes, seed)`: the first half of the episodes
-        (rounded up) on `env` here, the rest in the worker at the same time; results in episode order."""
+    def run(self, job, envs, n_episodes: int, seed: int, **kwargs) -> list:
+        """`job.episodes(envs, n_episodes, seed)` (a job, or an SB3 model: its `PolicyJob`): the
+        first half of the episodes (rounded up) on `envs` here (an env or a list of them), the rest
+        in the worker at the same time; results in episode order. `kwargs` go to `run_episodes`
+        here and there (`object_set`; `progress` here only)."""
+        if not hasattr(job, "episodes"):
+            job = PolicyJob(job.policy)
+        envs = list(envs) if isinstance(envs, (list, tuple)) else [envs]
         here = (n_episodes + 1) // 2
         theirs = n_episodes - here
         if theirs:
+            sent = {key: value for key, value in kwargs.items() if key != "progress"}
             try:
-                self._remote.send((_without_gradients(model.policy), theirs, seed + here))
+                self._remote.send((job, theirs, seed + here, sent))
             except (BrokenPipeError, ConnectionResetError):
                 raise self._exited() from None
         try:
-            results = run_episodes(predictor(model), env, here, seed=seed)
+            results = job.episodes(envs if job.batched else envs[:1], here, seed, **kwargs)
         finally:
             reply = self._reply() if theirs else []  # read even after a failure here: no stale reply
         return results + reply

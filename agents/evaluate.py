@@ -2,18 +2,8 @@
 table, grasp time, peak strain, safety stops, a training-curve plot and a GIF of sample episodes,
 for a trained policy (SB3 .zip or exported .npz) or a scripted baseline (`--baseline
 supervisory|loop|squeeze`), on one or more object sets (default: the test splits of the random_urdfs
-and of the primitives, bh8_gym.envs.objects) or on object files the user names.
-
-Metrics per episode:
-  success     `info["is_success"]` at the episode's last step (the env decides: object lifted
-              clear of the table and touching the hand).
-  grasp time  simulated seconds from reset until the fingers stop closing: the first cycle at
-              which every LOOP finger motor reports a strain rise of at least
-              `GRASP_STRAIN_RISE` over its value at reset (contact load); episodes that never
-              load all fingers have no grasp time and are left out of the mean.
-  peak strain the largest LFS any finger reported during the episode (8-bit, §6.2.2).
-Strain comes from decoding each step's `info["feedback_block"]` with the env's LoopLayout, i.e.
-the bytes a real hand would send.
+and of the primitives, bh8_gym.envs.objects) or on object files the user names. The metrics of
+an episode: agents/episodes.py. The episodes run in two processes (agents/eval_worker.py).
 
 `--compare REPORT` pairs this evaluation with another one on the same episodes (same seeds, so the
 same objects and placements) and prints the exact McNemar test of the two success records.
@@ -23,32 +13,28 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from tqdm import tqdm
 
 from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_script
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.episodes import EpisodeResult
+from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, EvaluationWorkerError, PolicyFileJob, ScriptJob
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
 from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.agents.config_check import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument
-from bh8_gym.envs.objects import object_family
-from bh8_gym.envs.scenes import episode_object
 from bh8_gym.rendering import encode_gif, steps_per_frame
 
 # 95% two-sided normal quantile
 Z_95 = 1.959963984540054
 # The object sets a report gives by default: the test splits (bh8_gym.envs.objects).
 DEFAULT_EVALUATION_SETS = "test,primitives-test"
-# LFS counts above the no-load reading that mean a finger is loaded by contact. No-load readings
-# are 100-140 with per-finger offsets (SPEC.md §1), so the rise is measured from each finger's own
-# reading at reset; 8 counts is well above the gauge's quantisation and below any real grasp load.
-GRASP_STRAIN_RISE = 8
 
 
 def percent(*fractions: float) -> str:
@@ -74,118 +60,6 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     low = 0.0 if successes == 0 else max(0.0, centre - half)
     high = 1.0 if successes == trials else min(1.0, centre + half)
     return low, high
-
-
-@dataclass
-class EpisodeResult:
-    object_name: str
-    success: bool
-    episode_return: float
-    length: int
-    sim_seconds: float
-    grasp_time: float | None
-    peak_strain: int | None
-    object_set: str = ""
-    family: str = ""
-    safety_stop: bool = False
-
-
-def object_name(spec) -> str:
-    """A readable name for an episode's object (file stem, or primitive kind and size in cm)."""
-    if spec is None:
-        return "(no object)"
-    if getattr(spec, "name", ""):
-        return spec.name
-    size = "x".join(f"{s * 100:.1f}" for s in spec.size)
-    return f"{spec.kind} {size}cm"
-
-
-class StrainTracker:
-    """Follows the finger strain gauges through an episode's feedback blocks."""
-
-    def __init__(self, layout):
-        self.layout = layout
-        self.indices = [i for i, (motor, name) in enumerate(layout.feedback_fields)
-                        if name == "LFS" and motor in (1, 2, 3)]
-        self.reset()
-
-    def reset(self) -> None:
-        self.baseline = None
-        self.peak = None
-        self.grasp_cycle = None
-        self.cycles = 0
-
-    def observe(self, feedback_block: bytes | None) -> None:
-        """One RealTime cycle's feedback block."""
-        self.cycles += 1
-        if not self.indices or not feedback_block:
-            return
-        values = self.layout.decode_feedback(feedback_block)
-        self.observe_strains(np.array([values[i] for i in self.indices]))
-
-    def observe_strains(self, strains: np.ndarray) -> None:
-        """Finger strain readings (from a feedback block, or FGET SG in supervisory mode)."""
-        if self.baseline is None:
-            self.baseline = strains
-        peak = int(strains.max())
-        self.peak = peak if self.peak is None else max(self.peak, peak)
-        if self.grasp_cycle is None and np.all(strains - self.baseline >= GRASP_STRAIN_RISE):
-            self.grasp_cycle = self.cycles
-
-
-def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: bool = True,
-                 baseline=None, progress: bool = False, object_set: str = "") -> list[EpisodeResult]:
-    """Run `n_episodes` (seeds seed, seed+1, ...) with `policy.predict` or a scripted `baseline`.
-
-    `env`: a single env (see env_factory.make_env). `baseline`: an object with
-    `run_episode(env, seed) -> (return, length, info)` for baselines that use supervisory GCL.
-    With `deterministic=False` a policy's exploration noise is drawn anew for every episode
-    (`reset_noise`; gSDE would otherwise repeat one perturbation in all of them). `progress`
-    shows a bar on a terminal (`bh8 eval`). `object_set` labels the results.
-    """
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes must be positive, got {n_episodes!r}")
-    episodes = tqdm(range(n_episodes), desc="episodes", unit="ep", disable=None if progress else True, leave=False)
-    base = env.unwrapped
-    tracker = StrainTracker(base.layout)
-    cycle_seconds = float(base.cycle_seconds)
-    results = []
-    for episode in episodes:
-        tracker.reset()
-        if baseline is not None and hasattr(baseline, "run_episode"):
-            total, length, info, extra_seconds, grasp_time = baseline.run_episode(env, seed + episode, tracker)
-        else:
-            obs, info = env.reset(seed=seed + episode)
-            if baseline is not None:
-                baseline.reset(env)
-            elif not deterministic and hasattr(policy, "reset_noise"):
-                policy.reset_noise()
-            total, length, done, extra_seconds = 0.0, 0, False, 0.0
-            while not done:
-                if baseline is not None:
-                    action = baseline.act(obs, info)
-                else:
-                    action, _ = policy.predict(obs, deterministic=deterministic)
-                obs, reward, terminated, truncated, info = env.step(action)
-                tracker.observe(info.get("feedback_block"))
-                total += float(reward)
-                length += 1
-                done = terminated or truncated
-            grasp_time = None if tracker.grasp_cycle is None else tracker.grasp_cycle * cycle_seconds
-        spec = episode_object(env)
-        results.append(EpisodeResult(
-            object_name=object_name(spec),
-            object_set=object_set,
-            family=object_family(spec) if spec is not None else "",
-            safety_stop="safety_stop" in info,
-            success=bool(info.get("is_success", False)),
-            episode_return=total,
-            length=length,
-            sim_seconds=length * cycle_seconds + extra_seconds,
-            grasp_time=grasp_time,
-            peak_strain=tracker.peak,
-        ))
-    return results
 
 
 def summarize(results: Sequence[EpisodeResult]) -> dict[str, Any]:
@@ -410,6 +284,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="training run directory whose evaluations.csv to plot (default: the policy's)")
     parser.add_argument("--gif-episodes", type=integer_argument(0, 100), default=2,
                         help="episodes rendered to the GIF in --out (0: none; default: %(default)s)")
+    parser.add_argument("--processes", type=int, choices=(1, 2), default=2 if (os.cpu_count() or 1) > 1 else 1,
+                        help="run half of the episodes in a second process (the same episodes; default: "
+                             "%(default)s, 2 on a machine with more than one core)")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (as `bh8 train --no-progress`; none is drawn off a terminal anyway)")
     parser.add_argument("--compare", type=Path, default=None, metavar="REPORT",
@@ -442,6 +319,9 @@ def run(args: argparse.Namespace) -> int:
         if args.policy is not None:
             policy = load_policy(args.policy, trust=args.trust_file)
             metadata = policy.metadata
+            if "torch" in sys.modules:  # an SB3 file: one thread, as in the worker (the same actions), and
+                # no second thread of each process spinning on the other's core
+                sys.modules["torch"].set_num_threads(1)
         env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
         if metadata.get("env_id") and env_id != metadata["env_id"]:
             raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
@@ -463,22 +343,36 @@ def run(args: argparse.Namespace) -> int:
                 args.out.mkdir(parents=True, exist_ok=True)
             except OSError as error:
                 raise ValueError(f"--out {str(args.out)!r} cannot be a report directory: {error}") from None
+        if args.baseline is not None:
+            job = ScriptJob(args.baseline)
+        else:
+            job = PolicyFileJob(args.policy, trust=args.trust_file, policy=policy)
+        n_envs = BATCH_ENVS if job.batched else 1
         results = []
         for name in object_sets:
-            env = make_env(env_id, set_kwargs[name])
+            # The second half of the episodes in a worker process (agents/eval_worker.py), started
+            # first: it builds its envs while this process builds its own.
+            worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
+                      if args.processes > 1 and args.episodes > 1 else None)
+            envs = []
             try:
-                if args.baseline is not None:
-                    baseline = (make_script(args.baseline, env) if args.baseline in FAMILY
-                                else make_baseline(args.baseline, env))
-                results += run_episodes(policy, env, args.episodes, seed=args.seed, baseline=baseline,
-                                        progress=not args.no_progress, object_set=name)
+                envs += [make_env(env_id, set_kwargs[name]) for _ in range(n_envs)]
+                if args.baseline is not None:  # the label's and the GIF's
+                    baseline = (make_script(args.baseline, envs[0]) if args.baseline in FAMILY
+                                else make_baseline(args.baseline, envs[0]))
+                kwargs = {"progress": not args.no_progress, "object_set": name}
+                results += (worker.run(job, envs, args.episodes, args.seed, **kwargs) if worker is not None
+                            else job.episodes(envs, args.episodes, args.seed, **kwargs))
             finally:
-                env.close()
+                for env in envs:
+                    env.close()
+                if worker is not None:
+                    worker.close()
         paired = None
         if comparison is not None:
             theirs = paired_outcomes(*comparison, results)
             paired = paired_comparison([r.success for r in results], theirs)
-    except (PolicyFileError, FileNotFoundError, ValueError) as exc:
+    except (PolicyFileError, FileNotFoundError, ValueError, EvaluationWorkerError) as exc:
         print(f"bh8 eval: {exc}", file=sys.stderr)
         return 2
     summary = summarize(results)

@@ -1,17 +1,18 @@
-"""Wall time and env steps per second of a short PPO run (bh8 train's code path) on all cores.
+"""Wall time and env steps per second of a short PPO run (bh8 train's code path) of the default config.
 
-    python benchmarks/bench_training.py [--env BH8Grasp-v0] [--timesteps 20000] [--n-envs N]
-        [--n-steps 256] [--batch-size 64] [--config-hyperparameters] [--vec-env sharded|subproc] [--cpu]
+    python benchmarks/bench_training.py [--env BH8Grasp-v0] [--timesteps 20480] [--n-envs N]
+        [--n-steps N] [--batch-size N] [--vec-env sharded|subproc] [--cpu]
 
 Measures the whole run: env start-up, env stepping and PPO updates (evaluation, checkpoints and
 the config's [pretrain] warm start off: the warm start is a fixed cost per run, measured in
-docs/benchmarks.md's row for the default config). By default the rollouts are short (--n-steps 256,
---batch-size 64) so that a few thousand steps hold several updates; --config-hyperparameters
-keeps the config's own (the default config's throughput). torch runs one thread per process
-(Trainer sets it). --vec-env subproc runs the envs in SB3's SubprocVecEnv, one worker process per
-env, as bh8 train did before ShardedVecEnv (agents/vec_env.py): the same run, for comparison.
---cpu also prints where the CPU time of a vector step goes, per process (Linux /proc): on a
-machine with a free core per process the training process's share bounds the step rate.
+docs/benchmarks.md's row for the default config). By default the run is the env's default
+config's (agents/configs/ppo_grasp.toml: 8 envs, rollouts of 8 x 256 steps, minibatches of 256);
+--n-envs, --n-steps and --batch-size change it (the earlier rows of docs/benchmarks.md name them).
+torch runs one thread per process (Trainer sets it). --vec-env subproc runs the envs in SB3's
+SubprocVecEnv, one worker process per env, as bh8 train did before ShardedVecEnv
+(agents/vec_env.py): the same run, for comparison. --cpu also prints where the CPU time of a
+vector step goes, per process (Linux /proc): on a machine with a free core per process the
+training process's share bounds the step rate.
 """
 from __future__ import annotations
 
@@ -92,30 +93,31 @@ def timing(trainer: MeasuredTrainer, seconds: dict):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--env", default="BH8FingerReach-v0", help="environment id (default: %(default)s)")
-    parser.add_argument("--timesteps", type=int, default=4096,
+    parser.add_argument("--env", default="BH8Grasp-v0", help="environment id (default: %(default)s)")
+    parser.add_argument("--timesteps", type=int, default=20_480,
                         help="env steps of the PPO run, all envs together (default: %(default)s)")
-    parser.add_argument("--n-envs", type=int, default=os.cpu_count(),
-                        help="parallel envs (default: the CPU count, here %(default)s)")
-    parser.add_argument("--n-steps", type=int, default=256, help="PPO rollout length per env (default: %(default)s)")
-    parser.add_argument("--batch-size", type=int, default=64, help="PPO minibatch size (default: %(default)s)")
+    parser.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: the config's train.n_envs)")
+    parser.add_argument("--n-steps", type=int, default=None, help="PPO rollout length per env (default: the config's)")
+    parser.add_argument("--batch-size", type=int, default=None, help="PPO minibatch size (default: the config's)")
     parser.add_argument("--config-hyperparameters", action="store_true",
-                        help="the config's n_steps and batch_size instead of --n-steps and --batch-size")
+                        help="ignored: the config's hyperparameters are the default now (kept for earlier commands)")
     parser.add_argument("--vec-env", choices=("sharded", "subproc"), default="sharded",
                         help="where the envs run: bh8 train's ShardedVecEnv or SB3's SubprocVecEnv (default: %(default)s)")
     parser.add_argument("--cpu", action="store_true", help="also print the CPU time per vector step, per process")
     args = parser.parse_args()
 
     config = load_config(default_config_path("PPO", args.env))
-    if not args.config_hyperparameters:
-        config["hyperparameters"].update(n_steps=args.n_steps, batch_size=args.batch_size)
+    for name in ("n_steps", "batch_size"):
+        if getattr(args, name) is not None:
+            config["hyperparameters"][name] = getattr(args, name)
+    n_envs = args.n_envs if args.n_envs is not None else int(config["train"].get("n_envs", os.cpu_count() or 1))
     # evaluation and checkpoints out of the way: this measures training throughput
     config["eval"]["freq"] = MAX_TIMESTEPS
     config["train"]["checkpoint_freq"] = MAX_TIMESTEPS
     config.pop("pretrain", None)
     seconds = {"rollouts": 0.0, "update": 0.0, "own envs": 0.0}
     with tempfile.TemporaryDirectory() as out:
-        trainer = MeasuredTrainer(config, Path(out), n_envs=args.n_envs, seed=0, progress=False)
+        trainer = MeasuredTrainer(config, Path(out), n_envs=n_envs, seed=0, progress=False)
         trainer.subproc = args.vec_env == "subproc"
         if args.cpu:
             timing(trainer, seconds)
@@ -124,12 +126,12 @@ def main() -> None:
         wall = time.perf_counter() - start
     steps = state["num_timesteps"]
     hyperparameters = config["hyperparameters"]
-    print(f"PPO on {args.env}, {args.n_envs} envs ({args.vec_env}), n_steps {hyperparameters['n_steps']}, "
+    print(f"PPO on {args.env}, {n_envs} envs ({args.vec_env}), n_steps {hyperparameters['n_steps']}, "
           f"batch_size {hyperparameters['batch_size']}, cpu_count={os.cpu_count()}")
     print(f"{steps} env steps in {wall:.1f} s wall (incl. env start-up): {steps / wall:.0f} env steps/s")
     if args.cpu:
-        ms = 1e3 * args.n_envs / steps  # per vector step
-        print(f"CPU ms per vector step ({args.n_envs} env steps): training process {ms * seconds['rollouts']:.2f} "
+        ms = 1e3 * n_envs / steps  # per vector step
+        print(f"CPU ms per vector step ({n_envs} env steps): training process {ms * seconds['rollouts']:.2f} "
               f"collecting rollouts (of which stepping its own envs {ms * seconds['own envs']:.2f}) + "
               f"{ms * seconds['update']:.2f} PPO update; worker processes {ms * trainer.worker_cpu:.2f} in all")
 

@@ -85,7 +85,7 @@ def test_run_scripts_records_what_bh8_eval_measures():
     from bh8_gym.agents.baselines import make_baseline
     from bh8_gym.agents.ceiling import run_scripts
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.evaluate import run_episodes
+    from bh8_gym.agents.episodes import run_episodes
 
     record = run_scripts(["loop"], "primitives-validation", 2, 20000)
     env = make_env("BH8Grasp-v0", {"object_set": "primitives-validation", "randomize": False})

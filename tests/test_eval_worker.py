@@ -10,7 +10,7 @@ import pytest
 
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.eval_worker import EvaluationWorker, EvaluationWorkerError, predictor
-from bh8_gym.agents.evaluate import run_episodes
+from bh8_gym.agents.episodes import run_episodes
 
 GRASP = "BH8Grasp-v0"
 
@@ -44,6 +44,28 @@ def test_a_split_evaluation_gives_the_one_process_results_in_order(asymmetric_mo
     finally:
         worker.close()
     assert not worker.process.is_alive()
+
+
+def test_several_envs_run_a_policys_episodes_at_once_with_the_one_env_results_in_order(asymmetric_model):
+    """run_episodes on a list of envs (one forward pass per step for all of them): each env takes
+    the next seed when its episode ends, and the results are the one-env ones, in episode order
+    (up to the last digits of a return: an env's earlier episodes, a different history here, can
+    change PyBullet's contact order; docs/benchmarks.md, "Evaluation")."""
+    model, env_kwargs = asymmetric_model
+    envs = [make_env(GRASP, env_kwargs) for _ in range(3)]
+
+    def same(got, expected):
+        assert [r.object_name for r in got] == [r.object_name for r in expected]
+        assert [r.episode_return for r in got] == pytest.approx([r.episode_return for r in expected], rel=0.05, abs=0.1)
+
+    try:
+        expected = run_episodes(predictor(model), envs[0], 5, seed=10_000)
+        same(run_episodes(predictor(model), envs, 5, seed=10_000), expected)  # 3 at once, then 2 more
+        assert len({result.object_name for result in expected}) > 1  # different episodes, not one repeated
+        same(run_episodes(predictor(model), envs, 2, seed=10_003), expected[3:])  # fewer episodes than envs
+    finally:
+        for env in envs:
+            env.close()
 
 
 def test_a_policy_just_trained_with_gradients_is_sent_to_the_worker(asymmetric_model):
