@@ -15,14 +15,14 @@ file, `bh8 eval`) or `ScriptJob` (a scripted grasp, `bh8 eval --baseline`).
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import signal
+import sys
 import traceback
 from pathlib import Path
 
-from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.episodes import run_episodes
+from bh8_gym.agents.worker_processes import worker_context
 
 #: Envs per process that run a policy's episodes at once: a forward pass of a batch of 4
 #: observations costs about what one of 1 does, so it is paid once per 4 env steps
@@ -47,7 +47,17 @@ class _PolicyModel:
 
 def predictor(model):
     """What `run_episodes` calls for an SB3 model: host observations for an asymmetric one."""
+    from bh8_gym.agents.asymmetric import HostObservationModel, host_observation_count  # torch: SB3 models only
+
     return HostObservationModel(model) if host_observation_count(model) else model
+
+
+def one_torch_thread() -> None:
+    """torch (if a policy needed it) on one thread, as in the training process: the same arithmetic,
+    the same actions, and no process's second thread spinning on the other process's core."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
 
 
 def _without_gradients(policy):
@@ -90,6 +100,7 @@ class PolicyFileJob:
             from bh8_gym.agents.policy_file import load_policy
 
             self._policy = load_policy(self.path, trust=self.trust)
+            one_torch_thread()
         return run_episodes(self._policy, envs, n_episodes, seed=seed, **kwargs)
 
 
@@ -113,11 +124,8 @@ class ScriptJob:
 def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: tuple) -> None:
     """The worker: builds its envs at once (ready by the first evaluation), then answers each
     (job, n_episodes, seed, kwargs) with ("ok", results) or ("error", traceback) until None."""
-    import torch
-
     for signum in ignore_signals:
         signal.signal(signum, signal.SIG_IGN)
-    torch.set_num_threads(1)  # as the training process: the same arithmetic, the same actions
     envs, failure = [], None
     try:
         for _ in range(n_envs):
@@ -135,6 +143,7 @@ def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: t
             if failure is not None:
                 raise RuntimeError(failure)
             job, n_episodes, seed, kwargs = message
+            one_torch_thread()
             remote.send(("ok", job.episodes(envs if job.batched else envs[:1], n_episodes, seed, **kwargs)))
         except Exception:  # noqa: BLE001 - reported to the training process, which raises it
             remote.send(("error", traceback.format_exc()))
@@ -145,13 +154,12 @@ def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: t
 
 class EvaluationWorker:
     """A process that runs episodes of `env_id` (`n_envs` envs built by `make_env(env_id,
-    env_kwargs)`) for a job sent to it; `run` splits an evaluation between it and this process."""
+    env_kwargs)`) for a job sent to it; `run` splits an evaluation between it and this process.
+    `preload`: modules its jobs need beyond this one's (agents/worker_processes.py)."""
 
     def __init__(self, env_id: str, env_kwargs: dict, ignore_signals: tuple = (), start_method: str | None = None,
-                 n_envs: int = BATCH_ENVS):
-        if start_method is None:
-            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        context = mp.get_context(start_method)
+                 n_envs: int = BATCH_ENVS, preload: tuple = ()):
+        context = worker_context(start_method, preload=(__name__, *preload))
         self._remote, work_remote = context.Pipe()
         self.process = context.Process(target=_serve, daemon=True,
                                        args=(work_remote, env_id, dict(env_kwargs), int(n_envs), tuple(ignore_signals)))

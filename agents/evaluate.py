@@ -24,7 +24,14 @@ import numpy as np
 from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.episodes import EpisodeResult
-from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, EvaluationWorkerError, PolicyFileJob, ScriptJob
+from bh8_gym.agents.eval_worker import (
+    BATCH_ENVS,
+    EvaluationWorker,
+    EvaluationWorkerError,
+    PolicyFileJob,
+    ScriptJob,
+    one_torch_thread,
+)
 from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
 from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.agents.config_check import MAX_EPISODES, MAX_SEED
@@ -319,9 +326,7 @@ def run(args: argparse.Namespace) -> int:
         if args.policy is not None:
             policy = load_policy(args.policy, trust=args.trust_file)
             metadata = policy.metadata
-            if "torch" in sys.modules:  # an SB3 file: one thread, as in the worker (the same actions), and
-                # no second thread of each process spinning on the other's core
-                sys.modules["torch"].set_num_threads(1)
+            one_torch_thread()  # an SB3 file: as in the worker
         env_id = args.env or metadata.get("env_id") or "BH8Grasp-v0"
         if metadata.get("env_id") and env_id != metadata["env_id"]:
             raise ValueError(f"--env {env_id} but the policy was trained on {metadata['env_id']}")
@@ -352,7 +357,8 @@ def run(args: argparse.Namespace) -> int:
         for name in object_sets:
             # The second half of the episodes in a worker process (agents/eval_worker.py), started
             # first: it builds its envs while this process builds its own.
-            worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
+            worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs,
+                                       preload=("bh8_gym.agents.asymmetric",) if "torch" in sys.modules else ())
                       if args.processes > 1 and args.episodes > 1 else None)
             envs = []
             try:

@@ -560,6 +560,19 @@ def test_eval_in_two_processes_gives_the_one_process_report(tmp_path):
     assert len(set(one)) > 2  # different episodes, not one repeated
 
 
+def test_bh8_eval_imports_no_torch_until_an_sb3_file_needs_it():
+    """An exported .npz policy and the scripts evaluate without torch or SB3 (an install without
+    the train extras; agents/policy_file.py): importing bh8 eval and its worker loads neither."""
+    import subprocess
+    import sys
+
+    code = ("import sys, bh8_gym.agents.evaluate, bh8_gym.agents.eval_worker, bh8_gym.agents.episodes; "
+            "print(sorted(m for m in ('torch', 'stable_baselines3') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
 def test_eval_prints_set_and_family_rows_and_pairs_each_set(tmp_path, capsys):
     """On several object sets the console gets each set's summary, its family rows and a paired
     line per set before the overall one; the per-object rows only table.md."""
