@@ -15,6 +15,7 @@ file, `bh8 eval`) or `ScriptJob` (a scripted grasp, `bh8 eval --baseline`).
 """
 from __future__ import annotations
 
+import multiprocessing as mp
 import signal
 import sys
 import traceback
@@ -22,7 +23,6 @@ from pathlib import Path
 
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.episodes import run_episodes
-from bh8_gym.agents.worker_processes import worker_context
 
 #: Envs per process that run a policy's episodes at once: a forward pass of a batch of 4
 #: observations costs about what one of 1 does, so it is paid once per 4 env steps
@@ -154,12 +154,13 @@ def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: t
 
 class EvaluationWorker:
     """A process that runs episodes of `env_id` (`n_envs` envs built by `make_env(env_id,
-    env_kwargs)`) for a job sent to it; `run` splits an evaluation between it and this process.
-    `preload`: modules its jobs need beyond this one's (agents/worker_processes.py)."""
+    env_kwargs)`) for a job sent to it; `run` splits an evaluation between it and this process."""
 
     def __init__(self, env_id: str, env_kwargs: dict, ignore_signals: tuple = (), start_method: str | None = None,
-                 n_envs: int = BATCH_ENVS, preload: tuple = ()):
-        context = worker_context(start_method, preload=(__name__, *preload))
+                 n_envs: int = BATCH_ENVS):
+        if start_method is None:
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        context = mp.get_context(start_method)
         self._remote, work_remote = context.Pipe()
         self.process = context.Process(target=_serve, daemon=True,
                                        args=(work_remote, env_id, dict(env_kwargs), int(n_envs), tuple(ignore_signals)))

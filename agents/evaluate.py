@@ -357,8 +357,7 @@ def run(args: argparse.Namespace) -> int:
         for name in object_sets:
             # The second half of the episodes in a worker process (agents/eval_worker.py), started
             # first: it builds its envs while this process builds its own.
-            worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs,
-                                       preload=("bh8_gym.agents.asymmetric",) if "torch" in sys.modules else ())
+            worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
                       if args.processes > 1 and args.episodes > 1 else None)
             envs = []
             try:

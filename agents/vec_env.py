@@ -16,6 +16,7 @@ envs live differs.
 """
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import signal
 import traceback
@@ -27,8 +28,6 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env.base_vec_env import CloudpickleWrapper, VecEnv, VecEnvIndices
-
-from bh8_gym.agents.worker_processes import worker_context
 
 
 class WorkerError(RuntimeError):
@@ -175,8 +174,9 @@ class ShardedVecEnv(VecEnv):
         bounds = np.cumsum([0, *sizes])
         #: env indices of each shard: shard 0 here, shard k in worker k - 1
         self.shards = [list(range(bounds[k], bounds[k + 1])) for k in range(len(sizes))]
-        # (the evaluation worker, started later, is then forked ready from the same forkserver)
-        context = worker_context(start_method, preload=(__name__, "bh8_gym.agents.eval_worker"))
+        if start_method is None:
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        context = mp.get_context(start_method)
         self.remotes, self.processes = [], []
         self._pending: set[int] = set()  # workers whose reply to a command is still to be read
         try:
