@@ -2,13 +2,14 @@
 process with envs of its own; in each process several envs run episodes at once.
 
 Why: `bh8 train` evaluates its policy on 100 validation episodes at every evaluation, and `bh8 eval`
-runs hundreds of test episodes; in one process with one env the second core idles, and every step
-waits for a forward pass of the policy that costs about half an env step. Each episode is fixed by
+runs hundreds of test episodes; in one process with one env the second core idles, and every env
+step waits for a forward pass of the policy of its own. Each episode is fixed by
 its seed (its object, placement and randomisation, tests/test_objects.py) and the policy is
 deterministic, so the results are those of `run_episodes` in one process with one env, in the same
 order, with one exception: an env's earlier episodes can change the order of PyBullet's contacts,
 so where the worker gave an env another history, a return may differ in its last digits (2 of
-200 grasp episodes, in the third digit; no success changed: docs/benchmarks.md, "Evaluation").
+400 grasp episodes, in the second or third digit; no success changed: docs/benchmarks.md,
+"Evaluation").
 
 What the worker runs is a job: `PolicyJob` (an SB3 policy, `bh8 train`), `PolicyFileJob` (a policy
 file, `bh8 eval`) or `ScriptJob` (a scripted grasp, `bh8 eval --baseline`).
