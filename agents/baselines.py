@@ -353,3 +353,9 @@ def make_script(name: str, env):
         raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)})")
     baseline, settings = FAMILY[name]
     return make_baseline(baseline, env, **settings)
+
+
+def make_grasp(name: str, env):
+    """A scripted grasp by the name `bh8 eval --baseline` takes: the family's script `name` if there
+    is one, else the baseline `name`, for `env`."""
+    return make_script(name, env) if name in FAMILY else make_baseline(name, env)

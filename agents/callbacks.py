@@ -9,7 +9,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, predictor
+from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, PolicyJob, predictor
 from bh8_gym.agents.episodes import run_episodes
 from bh8_gym.agents.evaluate import percent, summarize
 from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
@@ -66,7 +66,7 @@ class EvaluationCallback(BaseCallback):
             self._envs = [make_env(config["env_id"], self.trainer.evaluation_env_kwargs) for _ in range(BATCH_ENVS)]
         # Same seeds at every evaluation: the curve compares policies, not episode draws.
         if self._worker is not None:
-            results = self._worker.run(self.model, self._envs, self.n_episodes, self.eval_seed)
+            results = self._worker.run(PolicyJob(self.model.policy), self._envs, self.n_episodes, self.eval_seed)
         else:
             results = run_episodes(predictor(self.model), self._envs, self.n_episodes, seed=self.eval_seed,
                                    progress=self.trainer.progress)

@@ -106,8 +106,8 @@ class PolicyFileJob:
 
 
 class ScriptJob:
-    """Episodes of a scripted grasp: `agents.baselines.make_baseline(name)` or the ceiling family's
-    `make_script(name)`, on one env (a script keeps per-episode state on its env)."""
+    """Episodes of a scripted grasp (`agents.baselines.make_grasp(name)`), on one env (a script
+    keeps per-episode state on its env)."""
 
     batched = False
 
@@ -115,11 +115,9 @@ class ScriptJob:
         self.name = name
 
     def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
-        from bh8_gym.agents.baselines import FAMILY, make_baseline, make_script
+        from bh8_gym.agents.baselines import make_grasp
 
-        env = envs[0]
-        script = make_script(self.name, env) if self.name in FAMILY else make_baseline(self.name, env)
-        return run_episodes(None, env, n_episodes, seed=seed, baseline=script, **kwargs)
+        return run_episodes(None, envs[0], n_episodes, seed=seed, baseline=make_grasp(self.name, envs[0]), **kwargs)
 
 
 def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: tuple) -> None:
@@ -169,12 +167,10 @@ class EvaluationWorker:
         work_remote.close()
 
     def run(self, job, envs, n_episodes: int, seed: int, **kwargs) -> list:
-        """`job.episodes(envs, n_episodes, seed)` (a job, or an SB3 model: its `PolicyJob`): the
-        first half of the episodes (rounded up) on `envs` here (an env or a list of them), the rest
-        in the worker at the same time; results in episode order. `kwargs` go to `run_episodes`
-        here and there (`object_set`; `progress` here only)."""
-        if not hasattr(job, "episodes"):
-            job = PolicyJob(job.policy)
+        """`job.episodes(envs, n_episodes, seed)`: the first half of the episodes (rounded up) on
+        `envs` here (an env or a list of them), the rest in the worker at the same time; results in
+        episode order. `kwargs` go to `run_episodes` here and there (`object_set`; `progress` here
+        only)."""
         envs = list(envs) if isinstance(envs, (list, tuple)) else [envs]
         here = (n_episodes + 1) // 2
         theirs = n_episodes - here

@@ -21,7 +21,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bh8_gym.agents.baselines import BASELINES, FAMILY, make_baseline, make_script
+from bh8_gym.agents.baselines import BASELINES, FAMILY, make_grasp
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.episodes import EpisodeResult
 from bh8_gym.agents.eval_worker import (
@@ -225,12 +225,14 @@ def plot_training_curve(rows: Sequence[dict[str, float]], path: Path) -> Path:
 
 
 def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int, seed: int,
-               baseline=None, every: int | None = None) -> Path:
-    """Render `episodes` sample episodes (headless TinyRenderer) into one real-time GIF, a frame
-    every `every` steps (default `rendering.steps_per_frame`: frames of at least 20 ms)."""
+               script: str | None = None, every: int | None = None) -> Path:
+    """Render `episodes` sample episodes (headless TinyRenderer) of `policy` or of the scripted grasp
+    `script` (`make_grasp`'s name) into one real-time GIF, a frame every `every` steps (default
+    `rendering.steps_per_frame`: frames of at least 20 ms)."""
     env = make_env(env_id, env_kwargs, render_mode="rgb_array")
     frames = []
     try:
+        baseline = make_grasp(script, env) if script is not None else None
         base = env.unwrapped
         if every is None:
             every = steps_per_frame(base.cycle_seconds)
@@ -321,7 +323,7 @@ def evaluation_env_kwargs(env_id: str, base_kwargs: dict, objects: str, object_f
 
 
 def run(args: argparse.Namespace) -> int:
-    policy, baseline, metadata = None, None, {}
+    policy, metadata = None, {}
     try:
         if args.policy is not None:
             policy = load_policy(args.policy, trust=args.trust_file)
@@ -362,9 +364,6 @@ def run(args: argparse.Namespace) -> int:
             envs = []
             try:
                 envs += [make_env(env_id, set_kwargs[name]) for _ in range(n_envs)]
-                if args.baseline is not None:  # the label's and the GIF's
-                    baseline = (make_script(args.baseline, envs[0]) if args.baseline in FAMILY
-                                else make_baseline(args.baseline, envs[0]))
                 kwargs = {"progress": not args.no_progress, "object_set": name}
                 results += (worker.run(job, envs, args.episodes, args.seed, **kwargs) if worker is not None
                             else job.episodes(envs, args.episodes, args.seed, **kwargs))
@@ -382,7 +381,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     summary = summarize(results)
     table = per_object_table(results)
-    label = f"baseline {args.baseline}" if baseline is not None else str(args.policy)
+    label = f"baseline {args.baseline}" if args.baseline is not None else str(args.policy)
     grasp = "n/a" if summary["mean_grasp_time"] is None else f"{summary['mean_grasp_time']:.3f} s"
     objects = f" ({args.object_files or ', '.join(object_sets)})" if env_id.startswith("BH8Grasp") else ""
     print(f"{label} on {env_id}{objects}, {summary['episodes']} episodes")
@@ -418,7 +417,7 @@ def run(args: argparse.Namespace) -> int:
                 plot_run_curve(curve_dir, args.out / "training_curve.png")
             if args.gif_episodes > 0:
                 record_gif(policy, env_id, env_kwargs, args.out / "episodes.gif", args.gif_episodes, args.seed,
-                           baseline=baseline)
+                           script=args.baseline)
         except OSError as error:
             print(f"bh8 eval: cannot write the report in {str(args.out)!r}: {error}", file=sys.stderr)
             return 1

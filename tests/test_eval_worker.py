@@ -9,7 +9,7 @@ import os
 import pytest
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.eval_worker import EvaluationWorker, EvaluationWorkerError, predictor
+from bh8_gym.agents.eval_worker import EvaluationWorker, EvaluationWorkerError, PolicyJob, predictor
 from bh8_gym.agents.episodes import run_episodes
 
 GRASP = "BH8Grasp-v0"
@@ -38,8 +38,8 @@ def test_a_split_evaluation_gives_the_one_process_results_in_order(asymmetric_mo
     worker = EvaluationWorker(GRASP, env_kwargs)
     try:
         env = make_env(GRASP, env_kwargs)
-        assert worker.run(model, env, 3, 10_000) == expected  # episodes 10000-10001 here, 10002 there
-        assert worker.run(model, env, 3, 10_000) == expected  # and again: the same episodes
+        assert worker.run(PolicyJob(model.policy), env, 3, 10_000) == expected  # episodes 10000-10001 here, 10002 there
+        assert worker.run(PolicyJob(model.policy), env, 3, 10_000) == expected  # and again: the same episodes
         assert worker.process.pid != os.getpid() and worker.process.is_alive()
     finally:
         worker.close()
@@ -82,7 +82,7 @@ def test_a_policy_just_trained_with_gradients_is_sent_to_the_worker(asymmetric_m
     assert model.policy.action_dist.distribution.mean.requires_grad
     worker = EvaluationWorker(GRASP, env_kwargs)
     try:
-        assert worker.run(model, env, 2, 10_000) == expected
+        assert worker.run(PolicyJob(model.policy), env, 2, 10_000) == expected
     finally:
         worker.close()
 
@@ -94,7 +94,7 @@ def test_a_worker_that_cannot_build_its_env_is_an_error_naming_why_and_the_next_
         env = make_env(GRASP, env_kwargs)
         for _ in range(2):  # the failed reply was read: the next run gets its own
             with pytest.raises(EvaluationWorkerError, match="(?s)evaluation worker failed.*no_such_keyword"):
-                worker.run(model, env, 2, 10_000)
+                worker.run(PolicyJob(model.policy), env, 2, 10_000)
     finally:
         worker.close()
 

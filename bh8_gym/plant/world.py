@@ -96,7 +96,7 @@ class World:
         what a wrist force sensor reads beyond the hand's weight (normal forces; a table's
         friction on the hand is horizontal)."""
         hand = self.hand_id
-        return sum(c[9] * c[7][2] for c in p.getContactPoints(bodyA=hand, physicsClientId=self._client) if c[2] != hand)
+        return sum(c[9] * c[7][2] for c in self.contacts(hand) if c[2] != hand)
 
     def link_index(self, name: str) -> int:
         """PyBullet's index of the hand's link `name` (hand_urdf's names; the palm is -1)."""
