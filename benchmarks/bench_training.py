@@ -99,8 +99,6 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: the config's train.n_envs)")
     parser.add_argument("--n-steps", type=int, default=None, help="PPO rollout length per env (default: the config's)")
     parser.add_argument("--batch-size", type=int, default=None, help="PPO minibatch size (default: the config's)")
-    parser.add_argument("--config-hyperparameters", action="store_true",
-                        help="ignored: the config's hyperparameters are the default now (kept for earlier commands)")
     parser.add_argument("--vec-env", choices=("sharded", "subproc"), default="sharded",
                         help="where the envs run: bh8 train's ShardedVecEnv or SB3's SubprocVecEnv (default: %(default)s)")
     parser.add_argument("--cpu", action="store_true", help="also print the CPU time per vector step, per process")
@@ -110,14 +108,14 @@ def main() -> None:
     for name in ("n_steps", "batch_size"):
         if getattr(args, name) is not None:
             config["hyperparameters"][name] = getattr(args, name)
-    n_envs = args.n_envs if args.n_envs is not None else int(config["train"].get("n_envs", os.cpu_count() or 1))
     # evaluation and checkpoints out of the way: this measures training throughput
     config["eval"]["freq"] = MAX_TIMESTEPS
     config["train"]["checkpoint_freq"] = MAX_TIMESTEPS
     config.pop("pretrain", None)
     seconds = {"rollouts": 0.0, "update": 0.0, "own envs": 0.0}
     with tempfile.TemporaryDirectory() as out:
-        trainer = MeasuredTrainer(config, Path(out), n_envs=n_envs, seed=0, progress=False)
+        trainer = MeasuredTrainer(config, Path(out), n_envs=args.n_envs, seed=0, progress=False)  # None: the config's
+        n_envs = trainer.n_envs
         trainer.subproc = args.vec_env == "subproc"
         if args.cpu:
             timing(trainer, seconds)
