@@ -9,8 +9,9 @@ URL: ``bh8sim://[?option=value[&option=value...]]`` with options
 - ``object=SPEC`` (repeatable): an object placed as by ``bh8 serve --object SPEC`` (percent-encode
   any ``&``, ``#`` or ``%`` in it).
 
-Time: the simulated clock advances only while the host waits for the hand, so replies come as
-fast as the physics runs and are reproducible for a given sequence of calls. ``read(n)`` runs the
+Time: the simulated clock advances only while the host waits for the hand and the hand is busy,
+so replies come as fast as the physics runs and are reproducible for a given sequence of calls;
+an idle hand's clock stands still, as `bh8 serve`'s does. ``read(n)`` runs the
 firmware until n bytes exist, the firmware waits for input (no further byte can come), or the
 port's ``timeout`` has passed in SIMULATED seconds; it never blocks on the wall clock, so it cannot
 hang. With ``timeout=None`` a read that lacks bytes runs the firmware until it waits for input,
@@ -35,8 +36,8 @@ from bh8_gym.simulator import build_firmware, shutdown_firmware
 
 SCHEME = "bh8sim"
 # Simulated seconds run per firmware call while a read with a timeout waits for bytes: a reply is
-# picked up within this of being sent, and a motion that ends inside a chunk lets the (idle) world
-# run on to the chunk's end; short enough to be negligible, long enough to keep call overhead small.
+# picked up within this of being sent; short enough to be negligible, long enough to keep call
+# overhead small.
 RUN_CHUNK_S = 0.005
 # Simulated seconds an empty poll (in_waiting, read with timeout 0) lets a busy hand run.
 POLL_ADVANCE_S = 0.01
@@ -152,7 +153,10 @@ class Serial(SerialBase):
         received += firmware.read()
         while len(received) < wanted and budget_s > 0.0 and not firmware.idle:
             step = RUN_CHUNK_S if budget_s > RUN_CHUNK_S else budget_s
-            firmware.run_for(step)
+            # Up to `step`, but not past the moment the hand waits for input: its clock then stands
+            # still until the host writes, as `bh8 serve`'s does, so polls cost no simulated time
+            # and a log recorded here replays exactly (bh8 calibrate).
+            firmware.run_until_idle(step)
             budget_s -= step
             received += firmware.read()
 
