@@ -1,26 +1,29 @@
 """The calibration excitation: the fixed program of motions `bh8 calibrate record` runs on a hand.
 
-It is built to make the parameters the fit looks for show in the log, inside the safety envelope:
+It is built to make the parameters the fit looks for show in the log, inside the safety envelope,
+in motions whose outcome depends smoothly on them (the fit compares the log with replays):
 
-1. set-up: factory parameters (FDEF), then HI;
+1. set-up: factory parameters (FDEF), fingers holding their position (HOLD 1), then HI;
 2. supervisory moves of the fingers and the spread at three velocities (their durations time the
    motors on a real hand);
 3. in LOOP (every motor, velocity and gain bytes out, strain and absolute position back):
    - the clock probe: one block, the host waits `PROBE_WAIT_S`, one more: a real hand's finger
      ran on meanwhile, a simulated hand's clock stood still (log_format: "clock");
-   - sweeps: each finger and the spread driven back and forth between two positions at one LOOP
-     velocity and gain per segment. At low gains the motor's torque barely lifts a finger against
-     its weight, so how fast it goes tells the drive's strength; the spread's speed at low gains
-     tells its drive against its friction;
-   - with a calibration object on the palm: squeezes of it at three motor duties (the gauges read
-     the squeeze: their gain), each finger backing off if its gauge nears the envelope's limit;
-4. fingers back open (GM), then `bh8 calibrate record` leaves the hand as it found it.
+   - sweeps (`SweepLaw`): the fingers lifted against their weight at one weak LOOP velocity and
+     gain per segment, then brought back stiffly; the spread driven out and back at its own
+     velocity and gain. How fast a weak drive lifts a finger tells the drive's strength; how fast
+     the spread goes at low gains tells its drive against its friction. Every motor comes to rest
+     between phases;
+   - with a calibration object on the palm (`SqueezeLaw`): squeezes of it at three motor duties
+     (the gauges read the squeeze: their gain), each finger stopping if its gauge nears the
+     envelope's limit;
+4. fingers back open (M), then `bh8 calibrate record` leaves the hand as it found it.
 
 Every LOOP byte stays in the envelope (|LCV| <= SafetyEnvelope.max_velocity with LCVC 1); the
 fingers' sweeps stay between SWEEP_LOW and SWEEP_HIGH, clear of a calibration object resting on
 the palm. Segments are counted in cycles (their commands do not depend on the host's speed); a
-sweep reverses on the position it reads, so it is the same program on any hand. `scale` stretches
-every segment (1.0: about two minutes on a hand at 38,400 baud; the tests run 0.1).
+sweep turns on the positions it reads, so it is the same program on any hand. `scale` stretches
+every segment (1.0: about two minutes on a hand at 38,400 baud; the tests run less).
 """
 from __future__ import annotations
 
@@ -38,7 +41,12 @@ LOOP_FLAGS = {"LCV": 1, "LCVC": 1, "LCPG": 1, "LFV": 0, "LFS": 1, "LFAP": 1, "LF
 PROBE_WAIT_S = 0.25
 PROBE_VELOCITY = 10  # LCV: 2,441 counts/s, 610 counts in PROBE_WAIT_S on a hand whose clock runs
 PROBE_THRESHOLD_COUNTS = 150  # a clock that stood still moves one cycle's worth (about 16 counts)
-SWEEP_LOW, SWEEP_HIGH = 600, 7000  # finger counts: clear of a calibration object on the palm
+# LCV of a motor that is to stay (nearly) where it is in LOOP: 1/16 count per sample, not 0. A
+# finger told LCV 0 is unpowered and its worm holds it; the simulated hand's link then sags within
+# the worm's hold and its encoder jumps when it is driven again (docs/modelling.md), so the
+# excitation keeps every motor driven until it leaves LOOP.
+CREEP_VELOCITY = 1
+SWEEP_LOW, SWEEP_HIGH = 600, 6000  # finger counts: 1,800 counts short of where F3 meets the can (7,800)
 SPREAD_LOW, SPREAD_HIGH = 300, 2800
 SQUEEZE_VELOCITY = 16  # LCV: 1 count per sample; the duty is LCPG/4 x 1 of 127
 SQUEEZE_STRAIN_BACK_OFF = 200  # a finger whose gauge reads more stops (the envelope stops at 230)
@@ -46,20 +54,43 @@ OPEN_POSITION = 500
 SUPERVISORY_VELOCITIES = (30, 60, 100)  # MCV/MOV: up to the default, as the envelope's LCV 100 is
 
 
+# A finger's sweep lifts it against its weight at the segment's (slow, weak) velocity and gain, and
+# brings it back at RETURN_VELOCITY with RETURN_GAIN: a motor its load helps along runs at the speed
+# it is told when it is stiff, so its speed tells nothing about its strength then, while a weak one
+# lurches (the simulated hand's overrun brake, docs/modelling.md). Against its weight, the speed a
+# weak drive reaches tells its strength, smoothly.
+RETURN_VELOCITY, RETURN_GAIN = 60, 150
+# Cycles every motor creeps (CREEP_VELOCITY, stiff) between phases: the motors come to rest before
+# they are driven the other way (turned at once, the simulated finger's two joints may each take the
+# other for held back and open at half the speed told, or not, by a hair's breadth: the 3:1
+# coupling, docs/modelling.md), and the replay sets the simulated motors to the recorded positions
+# there, at rest (replay.py: anchors).
+REST_CYCLES = 6
+PHASE_LIMIT_CYCLES = 400  # the longest a phase waits for a motor to reach its end
+# The phases a segment record names after its part ("sweep3.lift"): replay.py sets the simulated
+# motors to the recorded positions where a lift or return starts, residuals.py compares by phase.
+PHASE_LIFT, PHASE_RETURN, PHASE_HOLD = "lift", "return", "hold"
+REST_PHASES = ("rest-lift", "rest-return")
+APPROACH_VELOCITY = 24  # LCV closing on the calibration object: below a breakaway's speed (§8: MCV 40)
+CONTACT_STRAIN = 4  # counts above the approach's first reading: the finger touches the object
+CONTACT_STALL_COUNTS = 10  # or it moved less than this in two cycles (its inner link met the object)
+APPROACH_LIMIT = 14_000  # a finger that got this far without touching the object missed it, and stops
+
+
 @dataclass(frozen=True)
 class Sweep:
-    """A LOOP segment: fingers and spread each driven back and forth at (LCV, LCPG)."""
+    """A LOOP segment: lift, rest, return, rest, ... (module docstring)."""
 
     name: str
-    finger: tuple[int, int]  # (LCV, LCPG) of every finger; LCV 0: the fingers stay
-    spread: tuple[int, int]
+    finger: tuple[int, int]  # (LCV, LCPG) of every finger while it lifts against its weight
+    spread: tuple[int, int]  # (LCV, LCPG) of the spread, both ways
     cycles: int
 
 
 @dataclass(frozen=True)
 class Squeeze:
-    """A LOOP segment: the fingers close on the calibration object at SQUEEZE_VELOCITY with `gain`,
-    then open back to SWEEP_LOW at the same gain."""
+    """A LOOP segment: the fingers approach the calibration object, squeeze it at SQUEEZE_VELOCITY
+    with `gain` for `cycles`, then open back to SWEEP_LOW."""
 
     name: str
     gain: int
@@ -75,7 +106,7 @@ class Commands:
 
 
 def _cycles(count: int, scale: float) -> int:
-    return max(20, int(round(count * scale)))
+    return max(60, int(round(count * scale)))
 
 
 def excitation_program(scale: float = 1.0, calibration_object: str | None = None) -> list:
@@ -88,74 +119,138 @@ def excitation_program(scale: float = 1.0, calibration_object: str | None = None
                   "123FGET P", f"4M {SPREAD_HIGH}", "4FGET P", f"4M {SPREAD_LOW}", "4FGET P"]
     flags = " ".join(f"{name} {value}" for name, value in LOOP_FLAGS.items())
     program = [
-        Commands("setup", ("1234FDEF", "PSET LFT 0 LFDPD 0", "1234HI")),
+        Commands("setup", ("1234FDEF", "123FSET HOLD 1", "PSET LFT 0 LFDPD 0", "1234HI")),
         Commands("moves", (*moves, f"1234FSET {flags}")),
     ]
-    # Finger (LCV, LCPG) against spread (LCV, LCPG), run together: the fingers' weight and the
-    # spread's friction are told apart by their own motors. Low finger gains first (the weight
-    # dominates), then stiffer ones (the speed follows the command: the drive's limits show less).
+    # Finger (LCV, LCPG) while lifting, spread (LCV, LCPG), run together: the fingers' weight and
+    # the spread's friction are told apart by their own motors. Weak finger gains (the weight tells
+    # the drive's strength) and spread gains from where it barely overcomes its friction up.
     sweeps = [
-        ((40, 4), (20, 40)), ((40, 8), (20, 80)), ((40, 16), (40, 60)), ((80, 8), (40, 150)),
-        ((80, 24), (60, 100)), ((20, 4), (20, 30)), ((20, 12), (60, 40)), ((60, 48), (30, 200)),
+        ((40, 8), (20, 40)), ((40, 12), (20, 80)), ((40, 16), (40, 60)), ((80, 12), (40, 150)),
+        ((80, 24), (60, 100)), ((24, 6), (20, 30)), ((24, 10), (60, 40)), ((60, 40), (30, 200)),
     ]
     for index, (finger, spread) in enumerate(sweeps):
         program.append(Sweep(f"sweep{index + 1}", finger, spread, _cycles(900, scale)))
     if calibration_object is not None:
         for index, gain in enumerate((48, 100, 160)):
-            program.append(Squeeze(f"squeeze{index + 1}", gain, _cycles(300, scale)))
+            program.append(Squeeze(f"squeeze{index + 1}", gain, _cycles(150, scale)))
     program.append(Commands("finish", ("1234FGET P", f"123M {OPEN_POSITION}", f"4M {SPREAD_LOW}", "1234FGET P")))
     return program
 
 
+def _ends(motor: int) -> tuple[int, int]:
+    return (SPREAD_LOW, SPREAD_HIGH) if motor == SPREAD_MOTOR else (SWEEP_LOW, SWEEP_HIGH)
+
+
 class SweepLaw:
-    """Which way each motor goes in a Sweep: up to its high position, then down to its low one.
+    """A Sweep's phases and blocks. "lift": the fingers go up against their weight (closing palm-up,
+    opening palm-down; between SWEEP_LOW and SWEEP_HIGH the inner links stay below 90°), the spread
+    to its far end; "return": the fingers back, stiffly, the spread back; a "rest" after each. A
+    motor that reached its end creeps there until the phase ends (all reached, or
+    PHASE_LIMIT_CYCLES). Deterministic from the positions read: the same program on any hand."""
 
-    Deterministic from the positions read, so the same program runs on any hand."""
-
-    def __init__(self, sweep: Sweep, positions: dict[int, int]):
+    def __init__(self, sweep: Sweep, positions: dict[int, int], mounting: str):
         self.sweep = sweep
-        self.direction = {}
-        for motor, position in positions.items():
-            low, high = (SPREAD_LOW, SPREAD_HIGH) if motor == SPREAD_MOTOR else (SWEEP_LOW, SWEEP_HIGH)
-            self.direction[motor] = 1 if position < (low + high) / 2 else -1
+        self.lifting = 1 if mounting == "palm-up" else -1  # the direction that lifts a finger
+        low, high = _ends(SPREAD_MOTOR)
+        self.spread_out = 1 if positions[SPREAD_MOTOR] < (low + high) / 2 else -1
+        self.phase, self.left = "lift", PHASE_LIMIT_CYCLES
+        self.phase_started, self._starting = False, True
+
+    def _direction(self, motor: int) -> int:
+        if motor == SPREAD_MOTOR:
+            return self.spread_out if self.phase in ("lift", "rest-lift") else -self.spread_out
+        return self.lifting if self.phase in ("lift", "rest-lift") else -self.lifting
+
+    def _arrived(self, motor: int, position: int) -> bool:
+        low, high = _ends(motor)
+        return position >= high if self._direction(motor) > 0 else position <= low
 
     def control(self, positions: dict[int, int]) -> tuple[list[int], list[int]]:
-        """(velocities, gains) of motors 1-4 for the next block, from the positions just read."""
+        """(velocities, gains) of motors 1-4 for the next block, from the positions just read;
+        `phase_started` tells whether this block starts a new phase (`phase` names it)."""
+        self.phase_started, self._starting = self._starting, False
+        if self.phase in ("lift", "return"):
+            self.left -= 1
+            if self.left <= 0 or all(self._arrived(m, positions[m]) for m in (*FINGER_MOTORS, SPREAD_MOTOR)):
+                self.phase, self.left = f"rest-{self.phase}", REST_CYCLES
+                self.phase_started = True
+        else:
+            self.left -= 1
+            if self.left <= 0:
+                self.phase = "return" if self.phase == "rest-lift" else "lift"
+                self.left = PHASE_LIMIT_CYCLES
+                self.phase_started = True
         velocities, gains = [], []
         for motor in (*FINGER_MOTORS, SPREAD_MOTOR):
-            spread = motor == SPREAD_MOTOR
-            velocity, gain = self.sweep.spread if spread else self.sweep.finger
-            low, high = (SPREAD_LOW, SPREAD_HIGH) if spread else (SWEEP_LOW, SWEEP_HIGH)
-            position = positions[motor]
-            if position >= high:
-                self.direction[motor] = -1
-            elif position <= low:
-                self.direction[motor] = 1
-            velocities.append(self.direction[motor] * velocity)
+            if self.phase.startswith("rest"):
+                # creeping on the way the next phase goes: no turn at its start
+                direction = -self._direction(motor)
+                velocity, gain = CREEP_VELOCITY, RETURN_GAIN
+            else:
+                direction = self._direction(motor)
+                if self._arrived(motor, positions[motor]):
+                    velocity, gain = CREEP_VELOCITY, RETURN_GAIN
+                    direction = -direction
+                elif motor == SPREAD_MOTOR:
+                    velocity, gain = self.sweep.spread
+                elif self.phase == "lift":
+                    velocity, gain = self.sweep.finger
+                else:
+                    velocity, gain = RETURN_VELOCITY, RETURN_GAIN
+            velocities.append(direction * velocity)
             gains.append(gain)
         return velocities, gains
 
 
 class SqueezeLaw:
-    """A Squeeze: every finger closes at SQUEEZE_VELOCITY until half the segment is over (a finger
-    whose gauge reads more than SQUEEZE_STRAIN_BACK_OFF stops where it is), then opens back to
-    SWEEP_LOW; the spread holds."""
+    """A Squeeze's phases: "approach" (every finger closes at APPROACH_VELOCITY, stiffly, until its
+    gauge reads CONTACT_STRAIN above its first reading, then squeezes at SQUEEZE_VELOCITY with the
+    segment's gain; one whose gauge passes SQUEEZE_STRAIN_BACK_OFF stops), "hold" (the squeeze's
+    cycles once every finger touched, or PHASE_LIMIT_CYCLES), "release" (open to SWEEP_LOW); the
+    spread creeps."""
 
-    def __init__(self, squeeze: Squeeze):
+    def __init__(self, squeeze: Squeeze, strains: dict[int, int]):
         self.squeeze = squeeze
+        self.first = dict(strains)
+        self.touched: set[int] = set()
         self.stopped: set[int] = set()
-        self.cycle = 0
+        self.phase, self.left = "approach", PHASE_LIMIT_CYCLES
+        self.phase_started, self._starting = False, True
+        self.finished = False
+        self.history: list[dict[int, int]] = []
 
     def control(self, positions: dict[int, int], strains: dict[int, int]) -> tuple[list[int], list[int]]:
-        closing = self.cycle < self.squeeze.cycles // 2
-        self.cycle += 1
-        velocities = []
+        self.phase_started, self._starting = self._starting, False
+        self.left -= 1
+        self.history = [*self.history[-2:], dict(positions)]
         for motor in FINGER_MOTORS:
-            if strains[motor] > SQUEEZE_STRAIN_BACK_OFF:
+            # Touching: past the sweeps (the object lies beyond them) and either the gauge reads the
+            # push, or the finger stalled for three cycles (its inner link met the object).
+            stalled = len(self.history) == 3 and self.history[-1][motor] - self.history[0][motor] < CONTACT_STALL_COUNTS
+            if positions[motor] > SWEEP_HIGH and (strains[motor] - self.first[motor] >= CONTACT_STRAIN or stalled):
+                self.touched.add(motor)
+            if strains[motor] > SQUEEZE_STRAIN_BACK_OFF or positions[motor] >= APPROACH_LIMIT:
                 self.stopped.add(motor)
-            if closing:
-                velocities.append(0 if motor in self.stopped else SQUEEZE_VELOCITY)
+        if self.phase == "approach" and (len(self.touched) == 3 or self.left <= 0):
+            self.phase, self.left, self.phase_started = "hold", self.squeeze.cycles, True
+        elif self.phase == "hold" and self.left <= 0:
+            self.phase, self.left, self.phase_started = "release", PHASE_LIMIT_CYCLES, True
+        elif self.phase == "release" and (self.left <= 0 or all(positions[m] <= SWEEP_LOW for m in FINGER_MOTORS)):
+            self.finished = True
+        velocities, gains = [], []
+        for motor in FINGER_MOTORS:
+            if self.phase == "release":
+                opening = positions[motor] > SWEEP_LOW
+                velocities.append(-RETURN_VELOCITY if opening else -CREEP_VELOCITY)
+                gains.append(RETURN_GAIN)
+            elif motor in self.stopped:
+                velocities.append(0)
+                gains.append(self.squeeze.gain)
+            elif motor in self.touched:
+                velocities.append(SQUEEZE_VELOCITY)
+                gains.append(self.squeeze.gain)
             else:
-                velocities.append(-SQUEEZE_VELOCITY * 2 if positions[motor] > SWEEP_LOW else 0)
-        gains = [self.squeeze.gain] * 3
-        return velocities + [0], gains + [100]
+                velocities.append(APPROACH_VELOCITY)
+                gains.append(RETURN_GAIN)
+        return velocities + [CREEP_VELOCITY], gains + [RETURN_GAIN]

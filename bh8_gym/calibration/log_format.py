@@ -53,6 +53,22 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_.:-]{0,63}")
 _FLAG_NAMES = tuple(f.name for f in MotorFlags.__dataclass_fields__.values())
 
 
+_COMMAND = re.compile(r"^\s*[1-4GSgs]*\s*([A-Za-z?]+)")  # the firmware takes "G C" as "GC" (client.supervisory)
+
+
+def command_word(line: str) -> str:
+    """The command of a supervisory line without its motor prefix ("123M 600" -> "M")."""
+    found = _COMMAND.match(line)
+    return found.group(1).upper() if found else ""
+
+
+def is_motion(line: str) -> bool:
+    """Whether the hand answers `line` only when a motion ends (§5.5)."""
+    from bh8_gym.client.supervisory import MOTION_COMMANDS
+
+    return command_word(line) in MOTION_COMMANDS
+
+
 class CalibrationLogError(ValueError):
     """Not a calibration log this version can use (the message names the file, line and why)."""
 

@@ -23,9 +23,11 @@ import time
 
 from bh8_gym.calibration.excitation import (
     BAUD,
+    CREEP_VELOCITY,
     EXCITATION_NAME,
     EXCITATION_VERSION,
     LOOP_MOTORS,
+    PHASE_LIMIT_CYCLES,
     PROBE_THRESHOLD_COUNTS,
     PROBE_VELOCITY,
     PROBE_WAIT_S,
@@ -36,7 +38,7 @@ from bh8_gym.calibration.excitation import (
     SweepLaw,
     excitation_program,
 )
-from bh8_gym.calibration.log_format import LOG_FORMAT, LOG_VERSION, LogWriter
+from bh8_gym.calibration.log_format import LOG_FORMAT, LOG_VERSION, LogWriter, is_motion
 from bh8_gym.cli import handling_signals
 from bh8_gym.client.line import error_code
 from bh8_gym.client.supervisory import firmware_profile_of
@@ -46,6 +48,9 @@ from bh8_gym.safety import SafetyEnvelope
 from bh8_gym.status import BH8Error
 
 PARAMETER_CHUNK = 6  # names per FGET/FSET line: well inside the firmware's 255-character line
+
+
+STALL_ERROR = 16
 
 
 class Stop(Exception):
@@ -174,7 +179,9 @@ class Recorder:
         code = error_code(lines)
         self._record({"kind": "command", "line": line, "reply": lines, "error": code, "t": start,
                       "dt": time.monotonic() - start})
-        if code is not None and check:
+        # A motion that stalls short of its target (ERR 16, §5.5: e.g. the spread's friction against the
+        # position loop's last counts) is part of what the log records; any other error stops.
+        if code is not None and check and not (code == STALL_ERROR and is_motion(line)):
             raise Stop(f"the hand answered ERR {code} to {line!r}")
         return lines
 
@@ -214,11 +221,12 @@ class Recorder:
     def _probe_clock(self) -> None:
         """Does the hand's clock run while the host waits? (log_format: the clock record)"""
         before = self._positions[1]
-        self._exchange([PROBE_VELOCITY, 0, 0, 0], [100, 100, 100, 100])
+        creep = [CREEP_VELOCITY] * 3
+        self._exchange([PROBE_VELOCITY, *creep], [100, 100, 100, 100])
         time.sleep(PROBE_WAIT_S)
         self._exchange(header=b"A")
         moved = abs(self._positions[1] - before)
-        self._exchange([0, 0, 0, 0], [100, 100, 100, 100])
+        self._exchange([CREEP_VELOCITY] * 4, [100, 100, 100, 100])
         clock = "wall" if moved > PROBE_THRESHOLD_COUNTS else "line"
         self._record({"kind": "clock", "hand_clock": clock, "moved": float(moved), "waited": PROBE_WAIT_S,
                       "t": time.monotonic()})
@@ -227,17 +235,28 @@ class Recorder:
         if not self.hand.in_loop:
             self._enter_loop()
         if isinstance(part, Sweep):
-            law = SweepLaw(part, self._positions)
+            law = SweepLaw(part, self._positions, self.mounting)
             for _ in range(part.cycles):
                 self._check_stop()
-                self._exchange(*law.control(self._positions))
+                control = law.control(self._positions)
+                self._phase(part, law)
+                self._exchange(*control)
         elif isinstance(part, Squeeze):
-            law = SqueezeLaw(part)
-            for _ in range(part.cycles):
+            law = SqueezeLaw(part, self._strains)
+            for _ in range(part.cycles + 3 * PHASE_LIMIT_CYCLES):
                 self._check_stop()
-                self._exchange(*law.control(self._positions, self._strains))
+                control = law.control(self._positions, self._strains)
+                if law.finished:
+                    break
+                self._phase(part, law)
+                self._exchange(*control)
         else:
             raise TypeError(f"not a LOOP part: {part!r}")
+
+    def _phase(self, part, law) -> None:
+        """A segment record where a LOOP part's law starts a phase ("sweep3.lift", ...)."""
+        if law.phase_started:
+            self._record({"kind": "segment", "name": f"{part.name}.{law.phase}", "t": time.monotonic()})
 
     def _leave_loop(self) -> None:
         if self.hand.in_loop:

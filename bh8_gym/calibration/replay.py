@@ -21,13 +21,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bh8_gym.calibration.log_format import CalibrationLog
+from bh8_gym.calibration.excitation import PHASE_LIFT, PHASE_RETURN
+from bh8_gym.calibration.log_format import CalibrationLog, command_word, is_motion
 from bh8_gym.calibration.scene import replay_plant
 from bh8_gym.protocol import BITS_PER_BYTE, FINGER_MOTORS, LINE_END, PROMPT
 from bh8_gym.realtime_codec import LoopLayout, MotorFlags
 
-MOTION_WORDS = ("HI", "M", "C", "O", "HOME", "IO", "IC", "TC", "TO")
-COMMAND_LIMIT_S = 60.0  # simulated seconds a replayed motion may run (the excitation's take under 2 s)
+COMMAND_LIMIT_S = 60.0
+# Phases of the excitation (excitation.py) that start with every motor at rest: the replay sets the
+# simulated motors to the recorded hand's positions there, so what went differently before (a
+# finger its weight helped down, which the simulated hand does not repeat to the count) does not
+# carry over: each phase is predicted from where the recorded one started.
+ANCHOR_PHASES = (f".{PHASE_LIFT}", f".{PHASE_RETURN}")  # simulated seconds a replayed motion may run (the excitation's take under 2 s)
 
 
 class ReplayMismatch(ValueError):
@@ -67,11 +72,6 @@ def _error_of(lines: list[str]) -> int | None:
         if len(words) == 2 and words[0] == "ERR" and words[1].isdigit():
             return int(words[1])
     return None
-
-
-def _word(line: str) -> str:
-    stripped = line.strip().upper().lstrip("1234GS ")
-    return stripped.split()[0] if stripped.split() else ""
 
 
 def _layout_of(record: dict) -> LoopLayout:
@@ -118,16 +118,17 @@ def observed(log: CalibrationLog) -> Signals:
             segments.append(segment)
         elif kind == "command":
             _queried(record["line"], record["reply"], queried, queried_motors)
-            if _word(record["line"]) in MOTION_WORDS:
+            if is_motion(record["line"]):
                 durations.append(record["dt"])
     return Signals(np.array(positions, dtype=float).reshape(-1, len(motors)),
                    np.array(strains, dtype=float).reshape(-1, 3), np.array(queried, dtype=float),
                    np.array(queried_motors, dtype=int), np.array(durations, dtype=float), motors, segments)
 
 
-def replay(log: CalibrationLog, hand: dict, hand_clock: str | None = None) -> Signals:
+def replay(log: CalibrationLog, hand: dict, hand_clock: str | None = None, anchored: bool = True) -> Signals:
     """The simulated hand with PlantParameters fields `hand` driven by the log's commands and
-    blocks (module docstring). `hand_clock` overrides the log's clock record."""
+    blocks (module docstring). `hand_clock` overrides the log's clock record; `anchored`: set the
+    simulated motors to the recorded positions where a sweep's phase starts (module docstring)."""
     from bh8_gym.firmware import Firmware
 
     clock = hand_clock or log.hand_clock or "line"
@@ -135,15 +136,37 @@ def replay(log: CalibrationLog, hand: dict, hand_clock: str | None = None) -> Si
     plant = replay_plant(header.mounting, header.calibration_object, hand)
     try:
         firmware = Firmware(plant=plant, store_dir=None, profile=header.profile, seed=0)
-        return _Replayer(firmware, clock).run(log)
+        return _Replayer(firmware, clock, anchored).run(log)
     finally:
         plant.close()
 
 
+def anchor_plant(plant, motor_counts, motor_velocities) -> None:
+    """Set the plant's joints so that its four motors read `motor_counts` (plant counts) and turn at
+    `motor_velocities` (counts/s), each finger engaged (3:1)."""
+    from bh8_gym.plant.joints import INNER_COUNTS_PER_RAD, SPREAD_COUNTS_PER_RAD
+
+    angles, velocities = [], []
+    spread_angle = float(motor_counts[3]) / SPREAD_COUNTS_PER_RAD
+    spread_speed = float(motor_velocities[3]) / SPREAD_COUNTS_PER_RAD
+    for finger in range(3):
+        inner = float(motor_counts[finger]) / INNER_COUNTS_PER_RAD
+        speed = float(motor_velocities[finger]) / INNER_COUNTS_PER_RAD
+        if finger < 2:  # F1 and F2 turn about the spread
+            angles.append(spread_angle)
+            velocities.append(spread_speed)
+        angles += [inner, inner / 3.0]
+        velocities += [speed, speed / 3.0]
+    plant.set_joint_angles(angles, velocities)
+
+
 class _Replayer:
-    def __init__(self, firmware, clock: str):
+    def __init__(self, firmware, clock: str, anchored: bool):
         self.firmware = firmware
         self.wall = clock == "wall"
+        self.anchored = anchored
+        self.last_recorded = None  # the recorded hand's LFAP of the last block
+        self.before_recorded = None  # and of the block before it
         self.positions, self.strains, self.times = [], [], []
         self.queried, self.queried_motors, self.durations, self.errors = [], [], [], []
         self.layout = None
@@ -175,8 +198,8 @@ class _Replayer:
         start = self.firmware.time
         lines = _split_reply(line, self._transact(line.encode("ascii") + b"\r", repr(line), number))
         recorded, replayed = record["error"], _error_of(lines)
-        word = _word(line)
-        if word in MOTION_WORDS:
+        word = command_word(line)
+        if is_motion(line):
             self.durations.append(self.firmware.time - start)
             if recorded != replayed:
                 self.errors.append((line, recorded, replayed))
@@ -198,6 +221,26 @@ class _Replayer:
         self.layout = _layout_of(record)
         self.previous_block = None
 
+    def _segment(self, record: dict, number: int) -> None:
+        if self.anchored and record["name"].endswith(ANCHOR_PHASES) and self.last_recorded is not None \
+                and self.layout is not None:
+            self._anchor()
+
+    def _anchor(self) -> None:
+        """The simulated motors to where the recorded hand's last feedback put them, at the speed
+        its last two blocks give."""
+        plant = self.firmware.plant
+        simulated, speeds = plant.motor_positions(), plant.motor_velocities()
+        reported = dict(zip(self.layout.motors, self.positions[-1]))
+        recorded = dict(zip(self.layout.motors, self.last_recorded))
+        before = dict(zip(self.layout.motors, self.before_recorded or self.last_recorded))
+        interval = self.times[-1] - self.times[-2] if len(self.times) > 1 else 0.0
+        counts, velocities = list(simulated), list(speeds)
+        for m in self.layout.motors:
+            counts[m - 1] = simulated[m - 1] + recorded[m] - reported[m]
+            velocities[m - 1] = (recorded[m] - before[m]) / interval if interval > 0.0 else 0.0
+        anchor_plant(plant, counts, velocities)
+
     def _block(self, record: dict, number: int) -> None:
         firmware = self.firmware
         control = bytes.fromhex(record["control"])
@@ -214,6 +257,10 @@ class _Replayer:
             raise ReplayMismatch(f"line {number}: the simulator answered a RealTime block with {feedback[:40]!r}") from None
         self.times.append(firmware.time)
         self.previous_block = (record["t"], len(control) + len(bytes.fromhex(record["feedback"])))
+        if self.anchored:
+            values = self.layout.feedback_by_motor(self.layout.decode_feedback(bytes.fromhex(record["feedback"])))
+            self.before_recorded = self.last_recorded
+            self.last_recorded = [values[m].get("LFAP") for m in self.layout.motors]
 
     def _loop_exit(self, record: dict, number: int) -> None:
         reply = self._transact(b"\x03", "^C", number)

@@ -14,10 +14,11 @@ from __future__ import annotations
 
 from bh8_gym.objects import PRIMITIVE_KINDS, ObjectError, parse_object_spec
 
-# The object docs/hardware.md asks the lab to put on the palm: a full 330 ml drink can (66 mm across,
-# 115 mm tall, 350 g), standing on the palm's centre. The closing fingers meet it at about 9,000 counts,
-# beyond the sweeps' SWEEP_HIGH.
-DEFAULT_CALIBRATION_OBJECT = "cylinder:d0.066x0.115;mass=0.35"
+# The object docs/hardware.md asks the lab to put on the palm: a rigid 50 mm cube (a wooden or plastic
+# block) standing on the palm's centre. The closing fingers meet it with their fingertips, which
+# load the gauges (a can or a large cylinder meets the inner links first: the gauges barely read),
+# from about 8,000 counts (F3) on, beyond the sweeps' SWEEP_HIGH.
+DEFAULT_CALIBRATION_OBJECT = "box:0.05;mass=0.1"
 
 
 def check_calibration_object(text: str) -> str:
