@@ -7,7 +7,8 @@ URL: ``bh8sim://[?option=value[&option=value...]]`` with options
 - ``state=DIR``: the non-volatile store (default: a temporary directory made on open and removed
   on close, so every open without ``state`` is a factory-fresh hand and tests stay independent);
 - ``object=SPEC`` (repeatable): an object placed as by ``bh8 serve --object SPEC`` (percent-encode
-  any ``&``, ``#`` or ``%`` in it).
+  any ``&``, ``#`` or ``%`` in it);
+- ``hand=FILE``: the hand's parameters from a hand file, as ``bh8 serve --hand-parameters FILE``.
 
 Time: the simulated clock advances only while the host waits for the hand and the hand is busy,
 so replies come as fast as the physics runs and are reproducible for a given sequence of calls;
@@ -44,7 +45,8 @@ POLL_ADVANCE_S = 0.01
 
 
 def parse_url(url: str) -> dict:
-    """The options of a bh8sim:// URL: {"seed": int, "firmware": str, "state": str|None, "objects": tuple}.
+    """The options of a bh8sim:// URL: {"seed": int, "firmware": str, "state": str|None, "objects": tuple,
+    "hand": str|None}.
 
     Raises SerialException naming the offending part.
     """
@@ -53,7 +55,7 @@ def parse_url(url: str) -> dict:
         raise SerialException(f"expected a URL of the form {SCHEME}://?seed=N&firmware=4.3&state=DIR, got {url!r}")
     if parts.netloc or parts.path not in ("", "/"):
         raise SerialException(f"{SCHEME}:// takes options only (after '?'), got {parts.netloc + parts.path!r} in {url!r}")
-    options = {"seed": 0, "firmware": "4.3", "state": None, "objects": ()}
+    options = {"seed": 0, "firmware": "4.3", "state": None, "objects": (), "hand": None}
     objects = []
     try:
         pairs = urllib.parse.parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
@@ -80,9 +82,13 @@ def parse_url(url: str) -> dict:
             options["state"] = value
         elif name == "object":
             objects.append(value)
+        elif name == "hand":
+            if not value:
+                raise SerialException(f"hand needs a hand file, got an empty value in {url!r}")
+            options["hand"] = value
         else:
             raise SerialException(
-                f"unknown option {name!r} in {url!r}; known: seed, firmware, state, object"
+                f"unknown option {name!r} in {url!r}; known: seed, firmware, state, object, hand"
             )
     options["objects"] = tuple(objects)
     return options
@@ -108,7 +114,12 @@ class Serial(SerialBase):
             self._temporary_state = tempfile.mkdtemp(prefix="bh8sim-")
             state = self._temporary_state
         try:
-            self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"])
+            hand = None
+            if options["hand"] is not None:
+                from bh8_gym.calibration.hand_file import load_hand_parameters
+
+                hand = load_hand_parameters(options["hand"]).values
+            self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"], hand=hand)
         except (ValueError, OSError) as error:
             self._remove_temporary_state()
             raise SerialException(f"cannot open {self._port!r}: {error}") from error
