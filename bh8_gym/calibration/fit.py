@@ -43,8 +43,10 @@ class FitParameter:
     evidence: str  # which Evidence flag the log must have
     tells: str  # what in the log tells it (the report says it)
     bounds: tuple[float, float] = (0.25, 4.0)  # factors of the default
-    # A 5 % change must move the replay by this many times its own scatter (the noise probe's) for
-    # the parameter to be fitted: 3 for those the excitation is built to show, 10 for the rest.
+    # A 5 % change must move the replay of these signals (residuals.py) by this many times their own
+    # scatter (the noise probe's) for the parameter to be fitted: 3 for those the excitation is built
+    # to show, 10 for the rest.
+    signals: tuple = ("finger positions", "spread positions", "timing")
     noise_multiple: float = 3.0
 
 
@@ -53,7 +55,8 @@ FIT_PARAMETERS = (
     FitParameter("spread_drive_efficiency", "spread", "how fast the spread goes at low gains (sweeps)"),
     FitParameter("spread_friction_torque", "spread", "where the spread's drive overcomes its friction (sweeps)",
                  (0.1, 10.0)),
-    FitParameter("strain_gain", "squeezes", "the gauges' readings squeezing the calibration object"),
+    FitParameter("strain_gain", "squeezes", "the gauges' readings squeezing the calibration object",
+                 signals=("strains",)),
 )
 CHECKED = (
     FitParameter("worm_slack", "lifts", "a finger falling back by its worm's slack (9 counts)", noise_multiple=10.0),
@@ -222,12 +225,16 @@ def fit(log, rollouts, iterations: int = 12, progress=None, clock=time.monotonic
     base = model.groups(nominal)
     scatter = {name: _rms(model.groups(probed)[name] - values) for name, values in base.items()}
     effects = [{name: _rms(model.groups(step)[name] - values) for name, values in base.items()} for step in steps]
-    # Each parameter against the scatter of the signal it moves most, relative to that scatter.
-    ratio = [max(effect[name] / max(scatter[name], SENSITIVITY) for name in base) for effect in effects]
+    # Each parameter against the scatter of the signal (of those that can tell it) it moves most.
+    def told_by(j):
+        names = [name for name in candidates[j].signals if name in base] or list(base)
+        return max(names, key=lambda name: effects[j][name] / max(scatter[name], SENSITIVITY))
+
+    ratio = [effects[j][told_by(j)] / max(scatter[told_by(j)], SENSITIVITY) for j in range(len(candidates))]
     active = [j for j, parameter in enumerate(candidates) if ratio[j] >= parameter.noise_multiple]
     for j, parameter in enumerate(candidates):
         if j not in active:
-            told = max(base, key=lambda name: effects[j][name] / max(scatter[name], SENSITIVITY))
+            told = told_by(j)
             results[parameter.name] = ParameterResult(
                 parameter.name, evaluator.defaults[parameter.name], evaluator.defaults[parameter.name], None,
                 f"not identified: a 5 % change moves the {told} by {effects[j][told]:.2f}, "
