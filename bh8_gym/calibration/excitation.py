@@ -51,7 +51,7 @@ SPREAD_LOW, SPREAD_HIGH = 300, 2800
 SQUEEZE_VELOCITY = 16  # LCV: 1 count per sample; the duty is LCPG/4 x 1 of 127
 SQUEEZE_STRAIN_BACK_OFF = 200  # a finger whose gauge reads more stops (the envelope stops at 230)
 OPEN_POSITION = 500
-SUPERVISORY_VELOCITIES = (30, 60, 100)  # MCV/MOV: up to the default, as the envelope's LCV 100 is
+SUPERVISORY_VELOCITIES = (40, 100)  # MCV/MOV: up to the default, as the envelope's LCV 100 is
 
 
 # A finger's sweep lifts it against its weight at the segment's (slow, weak) velocity and gain, and
@@ -144,63 +144,67 @@ def _ends(motor: int) -> tuple[int, int]:
 
 class SweepLaw:
     """A Sweep's phases and blocks. "lift": the fingers go up against their weight (closing palm-up,
-    opening palm-down; between SWEEP_LOW and SWEEP_HIGH the inner links stay below 90°), the spread
-    to its far end; "return": the fingers back, stiffly, the spread back; a "rest" after each. A
-    motor that reached its end creeps there until the phase ends (all reached, or
-    PHASE_LIMIT_CYCLES). Deterministic from the positions read: the same program on any hand."""
+    opening palm-down; between SWEEP_LOW and SWEEP_HIGH the inner links stay below 90°); "return":
+    back, stiffly; a "rest" after each. A finger that reached its end creeps there until the phase
+    ends (every finger there, or PHASE_LIMIT_CYCLES). The spread goes to one end in one lift or
+    return, creeps there until the next, then goes back; it rests with the fingers (where the replay
+    sets the motors to the recorded positions). Deterministic from the positions read: the same
+    program on any hand."""
 
     def __init__(self, sweep: Sweep, positions: dict[int, int], mounting: str):
         self.sweep = sweep
         self.lifting = 1 if mounting == "palm-up" else -1  # the direction that lifts a finger
         low, high = _ends(SPREAD_MOTOR)
-        self.spread_out = 1 if positions[SPREAD_MOTOR] < (low + high) / 2 else -1
+        self.spread_direction = 1 if positions[SPREAD_MOTOR] < (low + high) / 2 else -1
+        self.spread_waits = False  # at its end: it creeps until the next lift or return
         self.phase, self.left = "lift", PHASE_LIMIT_CYCLES
         self.phase_started, self._starting = False, True
 
-    def _direction(self, motor: int) -> int:
-        if motor == SPREAD_MOTOR:
-            return self.spread_out if self.phase in ("lift", "rest-lift") else -self.spread_out
+    def _finger_direction(self) -> int:
         return self.lifting if self.phase in ("lift", "rest-lift") else -self.lifting
 
-    def _arrived(self, motor: int, position: int) -> bool:
-        low, high = _ends(motor)
-        return position >= high if self._direction(motor) > 0 else position <= low
+    def _arrived(self, position: int) -> bool:
+        return position >= SWEEP_HIGH if self._finger_direction() > 0 else position <= SWEEP_LOW
 
     def control(self, positions: dict[int, int]) -> tuple[list[int], list[int]]:
         """(velocities, gains) of motors 1-4 for the next block, from the positions just read;
         `phase_started` tells whether this block starts a new phase (`phase` names it)."""
         self.phase_started, self._starting = self._starting, False
+        self.left -= 1
         if self.phase in ("lift", "return"):
-            self.left -= 1
-            if self.left <= 0 or all(self._arrived(m, positions[m]) for m in (*FINGER_MOTORS, SPREAD_MOTOR)):
+            if self.left <= 0 or all(self._arrived(positions[m]) for m in FINGER_MOTORS):
                 self.phase, self.left = f"rest-{self.phase}", REST_CYCLES
                 self.phase_started = True
-        else:
-            self.left -= 1
-            if self.left <= 0:
-                self.phase = "return" if self.phase == "rest-lift" else "lift"
-                self.left = PHASE_LIMIT_CYCLES
-                self.phase_started = True
+        elif self.left <= 0:
+            self.phase = "return" if self.phase == "rest-lift" else "lift"
+            self.left = PHASE_LIMIT_CYCLES
+            self.phase_started = True
         velocities, gains = [], []
-        for motor in (*FINGER_MOTORS, SPREAD_MOTOR):
-            if self.phase.startswith("rest"):
+        for motor in FINGER_MOTORS:
+            direction = self._finger_direction()
+            if self.phase.startswith("rest") or self._arrived(positions[motor]):
                 # creeping on the way the next phase goes: no turn at its start
-                direction = -self._direction(motor)
+                direction = -direction
                 velocity, gain = CREEP_VELOCITY, RETURN_GAIN
+            elif self.phase == "lift":
+                velocity, gain = self.sweep.finger
             else:
-                direction = self._direction(motor)
-                if self._arrived(motor, positions[motor]):
-                    velocity, gain = CREEP_VELOCITY, RETURN_GAIN
-                    direction = -direction
-                elif motor == SPREAD_MOTOR:
-                    velocity, gain = self.sweep.spread
-                elif self.phase == "lift":
-                    velocity, gain = self.sweep.finger
-                else:
-                    velocity, gain = RETURN_VELOCITY, RETURN_GAIN
+                velocity, gain = RETURN_VELOCITY, RETURN_GAIN
             velocities.append(direction * velocity)
             gains.append(gain)
-        return velocities, gains
+        # The spread goes towards its end in the direction it is going, then creeps (turned) until
+        # the next lift or return; it rests with the fingers.
+        low, high = _ends(SPREAD_MOTOR)
+        turn = -1 if positions[SPREAD_MOTOR] >= high else (1 if positions[SPREAD_MOTOR] <= low else 0)
+        if turn and turn != self.spread_direction:
+            self.spread_direction = turn
+            self.spread_waits = True
+        if self.phase_started and self.phase in ("lift", "return"):
+            self.spread_waits = False
+        if self.spread_waits or self.phase.startswith("rest"):
+            return velocities + [self.spread_direction * CREEP_VELOCITY], gains + [RETURN_GAIN]
+        velocity, gain = self.sweep.spread
+        return velocities + [self.spread_direction * velocity], gains + [gain]
 
 
 class SqueezeLaw:

@@ -24,7 +24,7 @@ import numpy as np
 from bh8_gym.calibration.excitation import PHASE_LIFT, PHASE_RETURN
 from bh8_gym.calibration.log_format import CalibrationLog, command_word, is_motion
 from bh8_gym.calibration.scene import replay_plant
-from bh8_gym.protocol import BITS_PER_BYTE, FINGER_MOTORS, LINE_END, PROMPT
+from bh8_gym.protocol import BITS_PER_BYTE, FINGER_MOTORS, LINE_END, PROMPT, SPREAD_MOTOR
 from bh8_gym.realtime_codec import LoopLayout, MotorFlags
 
 COMMAND_LIMIT_S = 60.0
@@ -32,7 +32,8 @@ COMMAND_LIMIT_S = 60.0
 # simulated motors to the recorded hand's positions there, so what went differently before (a
 # finger its weight helped down, which the simulated hand does not repeat to the count) does not
 # carry over: each phase is predicted from where the recorded one started.
-ANCHOR_PHASES = (f".{PHASE_LIFT}", f".{PHASE_RETURN}")  # simulated seconds a replayed motion may run (the excitation's take under 2 s)
+ANCHOR_PHASES = (f".{PHASE_LIFT}", f".{PHASE_RETURN}")
+ANCHORED_MOTORS = (*FINGER_MOTORS, SPREAD_MOTOR)  # simulated seconds a replayed motion may run (the excitation's take under 2 s)
 
 
 class ReplayMismatch(ValueError):
@@ -237,8 +238,9 @@ class _Replayer:
         interval = self.times[-1] - self.times[-2] if len(self.times) > 1 else 0.0
         counts, velocities = list(simulated), list(speeds)
         for m in self.layout.motors:
-            counts[m - 1] = simulated[m - 1] + recorded[m] - reported[m]
-            velocities[m - 1] = (recorded[m] - before[m]) / interval if interval > 0.0 else 0.0
+            if m in ANCHORED_MOTORS:
+                counts[m - 1] = simulated[m - 1] + recorded[m] - reported[m]
+                velocities[m - 1] = (recorded[m] - before[m]) / interval if interval > 0.0 else 0.0
         anchor_plant(plant, counts, velocities)
 
     def _block(self, record: dict, number: int) -> None:

@@ -67,6 +67,13 @@ class ResidualModel:
         self.timing = hand_clock == "wall" and len(observed.durations) > 0
         self.ranges = np.array([FULL_RANGE_COUNTS[m] for m in observed.motors], dtype=float)
         self.evidence = self._evidence()
+        # A motor that did not move where the excitation moves it (a fault, an obstacle, a stuck
+        # spread) is left out: what it did is no motion the simulated motor can be fitted to.
+        still = self.evidence.still_motors
+        self.finger_columns = [c for c, m in zip(range(len(observed.motors)), observed.motors)
+                               if m in FINGER_MOTORS and m not in still]
+        if SPREAD_MOTOR in still:
+            self.spread_column = None
 
     def _moved(self, column: int, mask: np.ndarray) -> bool:
         values = self.observed.positions[mask, column]
@@ -144,7 +151,7 @@ class ResidualModel:
         difference = (replayed.positions - recorded.positions) / (0.01 * self.ranges)
         for motor, column in zip(recorded.motors, range(len(recorded.motors))):
             mask = self.sweep if motor == SPREAD_MOTOR else self.lift
-            if mask.any():
+            if mask.any() and column in (*self.finger_columns, self.spread_column):
                 out[f"motor {motor} position, % of range"] = float(np.sqrt(np.mean(difference[mask, column] ** 2)))
         groups = self.groups(replayed)
         if "strains" in groups:
