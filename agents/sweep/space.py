@@ -22,7 +22,7 @@ import itertools
 import math
 from typing import Any
 
-from bh8_gym.agents import config_check
+from bh8_gym.agents.training import config_check
 
 SWEEP_TABLE = "sweep"
 SWEEP_KEYS = ("seeds", "samples", "search", "space")
@@ -199,7 +199,7 @@ def check_sweep(config: dict, sweep: dict) -> None:
 
 
 def check_space_values(config: dict, space: dict[str, dict], n_envs: int) -> None:
-    """Every config the space can give passes bh8 train's checks (agents/config_check.py): each
+    """Every config the space can give passes bh8 train's checks (agents/training/config_check.py): each
     combination of the grid and choice values and of the ends of each range, and for a range one
     value between its ends too (an integer setting drawn from a range would get fractions). The
     checks are intervals, so a draw between two good ends is good. Past MAX_CHECKED_COMBINATIONS

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
+from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import BarrettHand
 from bh8_gym.envs.interfaces import interface_for

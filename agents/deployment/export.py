@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, SB3Policy, add_trust_argument, export_sb3_policy
+from bh8_gym.agents.deployment.policy_file import NumpyPolicy, PolicyFileError, SB3Policy, add_trust_argument, export_sb3_policy
 from bh8_gym.cli import float_argument, integer_argument
 
 # float32 torch against float64 numpy on a few-layer MLP: differences are ~1e-6; 1e-4 leaves margin

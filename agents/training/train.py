@@ -18,7 +18,7 @@ Output directory layout (`--out DIR`):
 SAC's replay buffer, the timestep counter and the evaluation bookkeeping, with the configuration
 and seed in run.json (an --algo, --env, --config or --seed that contradicts them is an error;
 --timesteps may extend the run; without it the run trains to the total it was started with).
-Nothing in the run directory is unpickled (agents/checkpoint_file.py; an earlier version's pickled
+Nothing in the run directory is unpickled (agents/training/checkpoint_file.py; an earlier version's pickled
 SAC replay buffer only with --trust-file).
 Evaluations made after the checkpoint are undone (their evaluations.csv rows, and a best_model.zip
 they wrote: the checkpoint's best model is put back).
@@ -40,7 +40,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.config_check import (
+from bh8_gym.agents.training.config_check import (
     ACTIVATION_CLASSES,
     ALGORITHMS,
     MAX_CONFIG_BYTES,
@@ -52,7 +52,7 @@ from bh8_gym.agents.config_check import (
     check_rollout,
     check_run_metadata,
 )
-from bh8_gym.agents.checkpoint_file import (
+from bh8_gym.agents.training.checkpoint_file import (
     LEGACY_REPLAY_BUFFER_FILE,
     REPLAY_BUFFER_FILE,
     CheckpointError,
@@ -61,8 +61,8 @@ from bh8_gym.agents.checkpoint_file import (
     save_replay_buffer,
 )
 from bh8_gym.agents.env_factory import EnvFactory
-from bh8_gym.agents.policy_file import RUN_METADATA_FILE, atomic_write
-from bh8_gym.agents.pretrain import (
+from bh8_gym.agents.deployment.policy_file import RUN_METADATA_FILE, atomic_write
+from bh8_gym.agents.training.pretrain import (
     DEMONSTRATIONS_FILE,
     PretrainSettings,
     clone,
@@ -70,7 +70,7 @@ from bh8_gym.agents.pretrain import (
     record,
     save_demonstrations,
 )
-from bh8_gym.agents.run_files import (
+from bh8_gym.agents.evaluation.run_files import (
     BEST_MODEL_FILE,
     copy_atomic,
     drop_evaluations_after,
@@ -143,7 +143,7 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def _pretrain_settings(config: dict):
-    """The config's [pretrain] table (agents/pretrain.py), checked; None without one."""
+    """The config's [pretrain] table (agents/training/pretrain.py), checked; None without one."""
     if "pretrain" not in config:
         return None
     try:
@@ -213,7 +213,7 @@ def _algorithm_class(name: str):
 
 
 def _check_config(config: dict) -> None:
-    """Every key of the config, checked before anything is built or written (agents/config_check.py)."""
+    """Every key of the config, checked before anything is built or written (agents/training/config_check.py)."""
     try:
         check_config(config)
     except ValueError as error:
@@ -287,7 +287,7 @@ class Trainer:
     def _vec_env(self):
         from stable_baselines3.common.vec_env import DummyVecEnv
 
-        from bh8_gym.agents.vec_env import ShardedVecEnv
+        from bh8_gym.agents.training.vec_env import ShardedVecEnv
 
         factories = [EnvFactory(self.config["env_id"], self._training_env_kwargs, seed=None)
                      for _ in range(self.n_envs)]
@@ -322,7 +322,7 @@ class Trainer:
         Returns the demonstrations (also saved in the run for a resume to keep cloning them)."""
         settings, log = self.pretrain, self.log or (lambda _line: None)
         if settings.teacher:
-            from bh8_gym.agents.teacher import distill
+            from bh8_gym.agents.training.teacher import distill
 
             log(f"warm start: a teacher choosing among {', '.join(settings.teacher)} on {settings.episodes} "
                 f"training episodes, distilled in {settings.dagger_iterations} DAgger iterations ([pretrain])")
@@ -457,7 +457,7 @@ class Trainer:
         if a signal stopped it."""
         import torch
 
-        from bh8_gym.agents.callbacks import (
+        from bh8_gym.agents.training.callbacks import (
             EvaluationCallback,
             KeepDemonstrationsCallback,
             RunCheckpointCallback,
@@ -589,8 +589,8 @@ def _check_resume_arguments(args: argparse.Namespace, run: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bh8_gym.agents.callbacks import console_line
-    from bh8_gym.agents.evaluate import percent
+    from bh8_gym.agents.training.callbacks import console_line
+    from bh8_gym.agents.evaluation.evaluate import percent
 
     try:
         if args.resume and (args.out / RUN_METADATA_FILE).exists():

@@ -12,7 +12,7 @@ that span closing velocity, gain, spread, strain target and softness) runs on th
 The union minus the best single script is the room a policy that picks its grasp per object can
 win; `benchmarks/bench_ceiling.py` measures it and the README's results table reports it beside
 the policy. The same record of which script holds which episode labels the teacher of
-`agents/teacher.py` on the training objects.
+`agents/training/teacher.py` on the training objects.
 """
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from bh8_gym.agents.baselines import make_script
+from bh8_gym.agents.evaluation.baselines import make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.episodes import object_name, run_episodes
-from bh8_gym.agents.run_files import write_json_atomic
+from bh8_gym.agents.evaluation.episodes import object_name, run_episodes
+from bh8_gym.agents.evaluation.run_files import write_json_atomic
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
 

@@ -282,7 +282,7 @@ POLICY_KWARGS = {
             "n_critics": Integer(1, 10)},
 }
 PRETRAIN_KEYS = {
-    "baseline": Text(("loop", "squeeze")),  # agents.baselines.LOOP_BASELINES (checked equal in the tests)
+    "baseline": Text(("loop", "squeeze")),  # agents.evaluation.baselines.LOOP_BASELINES (checked equal in the tests)
     "baseline_kwargs": Table({}),  # the baseline class's keywords, checked in `_check_pretrain`
     "episodes": Integer(1, 100_000),
     "epochs": Integer(1, 10_000),
@@ -460,7 +460,7 @@ def check_rollout(config: dict, n_envs: int) -> None:
 
 
 def _check_pretrain(config: dict) -> None:
-    from bh8_gym.agents import baselines
+    from bh8_gym.agents.evaluation import baselines
 
     if config["algorithm"] != "PPO":
         raise ConfigError("[pretrain] warm-starts an actor-critic: it needs PPO")
