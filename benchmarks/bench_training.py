@@ -24,7 +24,8 @@ from pathlib import Path
 
 from bh8_gym.agents.training.config_check import MAX_TIMESTEPS
 from bh8_gym.agents.env_factory import EnvFactory
-from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+from bh8_gym.agents.training.train import default_config_path, load_config
+from bh8_gym.agents.training.trainer import Trainer
 
 
 class MeasuredTrainer(Trainer):

@@ -25,7 +25,8 @@ from bh8_gym.agents.evaluation.evaluate import (
     summarize,
     wilson_interval,
 )
-from bh8_gym.agents.deployment.policy_file import NumpyPolicy, PolicyFileError, atomic_write_npz
+from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+from bh8_gym.agents.deployment.policy_io import PolicyFileError, atomic_write_npz
 
 REACH = "BH8FingerReach-v0"
 
@@ -163,7 +164,7 @@ def test_train_writes_checkpoints_and_resume_continues_the_step_count(tmp_path):
     """PPO on 2 SubprocVecEnv workers: a checkpoint, a best model and an evaluation row; --resume
     continues from the checkpoint's step counter instead of starting again."""
     from bh8_gym.agents.evaluation.run_files import read_evaluations
-    from bh8_gym.agents.training.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _tiny_reach_config("PPO")
     out = tmp_path / "run"
@@ -189,7 +190,7 @@ def test_linear_learning_rate_schedule_decays_to_zero_over_the_run(tmp_path):
     any other string is refused naming the value."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.training.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _tiny_reach_config("PPO")
     config["hyperparameters"]["learning_rate"] = "lin_1e-3"
@@ -208,7 +209,7 @@ def test_linear_learning_rate_schedule_decays_to_zero_over_the_run(tmp_path):
 def test_sac_checkpoint_keeps_the_replay_buffer_and_resumes(tmp_path):
     from stable_baselines3 import SAC
 
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _tiny_reach_config("SAC")
     out = tmp_path / "sac"
@@ -235,8 +236,8 @@ def test_cli_train_rejects_contradicting_arguments(tmp_path, capsys):
 def test_cli_export_writes_a_checked_numpy_policy_that_names_its_env(tmp_path, capsys):
     """`bh8 export RUN/final_model.zip`: an .npz beside the model that reproduces SB3's actions and
     carries the run's env id (what `bh8 deploy` needs); a wrong suffix or a missing model exits 2."""
-    from bh8_gym.agents.deployment.policy_file import NumpyPolicy
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.training.trainer import Trainer
     from bh8_gym.cli import main
 
     out = tmp_path / "run"
@@ -276,7 +277,8 @@ def _umask() -> int:
 
 
 def test_damaged_npz_is_a_policy_file_error(tmp_path):
-    from bh8_gym.agents.deployment.policy_file import NumpyPolicy, PolicyFileError
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.deployment.policy_io import PolicyFileError
 
     path = _export_untrained_reach_policy(tmp_path)
     with np.load(path) as data:
@@ -291,7 +293,8 @@ def test_a_truncated_or_garbled_npz_is_a_policy_file_error(tmp_path, capsys, dam
     """A half-copied or garbled .npz (zip errors, EOFError, or numpy's "allow_pickle" hint for a
     file that is not a zip at all) is a PolicyFileError, and `bh8 eval` a one-line error, exit 2
     (tracebacks before)."""
-    from bh8_gym.agents.deployment.policy_file import NumpyPolicy, PolicyFileError
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.deployment.policy_io import PolicyFileError
     from bh8_gym.cli import main
 
     data = _export_untrained_reach_policy(tmp_path).read_bytes()
@@ -358,7 +361,8 @@ def test_exported_policy_matches_sb3_actions(tmp_path, algorithm, use_sde):
 
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.agents.deployment.export import max_action_difference
-    from bh8_gym.agents.deployment.policy_file import SB3Policy, export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.deployment.sb3_file import SB3Policy
 
     env = make_env(REACH, {})
     try:
@@ -411,7 +415,8 @@ def test_sac_with_gsde_is_refused_by_name(tmp_path):
     from stable_baselines3 import SAC
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.deployment.policy_file import PolicyFileError, export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.deployment.policy_io import PolicyFileError
 
     env = make_env(REACH, {})
     try:
@@ -434,7 +439,7 @@ def test_export_bakes_in_vecnormalize_statistics(tmp_path):
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.deployment.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     venv = VecNormalize(DummyVecEnv([lambda: make_env(REACH, {})]), norm_reward=False)
     try:
@@ -457,7 +462,7 @@ def _export_untrained_reach_policy(tmp_path, **metadata) -> Path:
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.deployment.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     env = make_env(REACH, metadata.get("env_kwargs", {}))
     try:
@@ -562,11 +567,13 @@ def test_eval_in_two_processes_gives_the_one_process_report(tmp_path):
 
 def test_bh8_eval_imports_no_torch_until_an_sb3_file_needs_it():
     """An exported .npz policy and the scripts evaluate without torch or SB3 (an install without
-    the train extras; agents/deployment/policy_file.py): importing bh8 eval and its worker loads neither."""
+    the train extras; agents/deployment/numpy_policy.py): importing bh8 eval and its worker loads
+    neither."""
     import subprocess
     import sys
 
-    code = ("import sys, bh8_gym.agents.evaluation.evaluate, bh8_gym.agents.evaluation.eval_worker, bh8_gym.agents.evaluation.episodes; "
+    code = ("import sys, bh8_gym.agents.evaluation.evaluate, bh8_gym.agents.evaluation.eval_worker, "
+            "bh8_gym.agents.evaluation.episodes; "
             "print(sorted(m for m in ('torch', 'stable_baselines3') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
@@ -600,7 +607,7 @@ def test_training_and_evaluating_a_model_warns_nothing_deprecated(tmp_path):
     lowered" while training with a linear schedule and evaluating the saved model from its file."""
     import warnings
 
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
     from bh8_gym.cli import main
 
     config = _tiny_reach_config("PPO")
@@ -796,8 +803,10 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
 
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.agents.deployment.export import max_action_difference
-    from bh8_gym.agents.deployment.policy_file import SB3Policy, export_sb3_policy
-    from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.deployment.sb3_file import SB3Policy
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = load_config(default_config_path("PPO", "BH8Grasp-v0"))
     config["asymmetric_critic"] = True
@@ -849,7 +858,8 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
 
 
 def test_asymmetric_critic_needs_ppo_and_no_privileged_actor():
-    from bh8_gym.agents.training.train import Trainer, TrainingError, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = load_config(default_config_path("SAC", "BH8Grasp-v0"))
     config["asymmetric_critic"] = True

@@ -236,7 +236,7 @@ def test_bh8_train_refuses_a_bad_config_in_one_line_before_writing_anything(tmp_
 def test_values_at_the_edges_of_the_ranges_build_and_train(tmp_path):
     """What the checks accept trains: PPO with the ranges' ends (gamma 1, gae_lambda 0, clip_range 1,
     a one-layer net of width 1, log std -20 and 2) runs its rollouts and updates without an error."""
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     for log_std_init in (-20.0, 2.0):
         config = _base()

@@ -21,7 +21,9 @@ def asymmetric_model(tmp_path_factory):
     host observations only, so the worker must pad them as this process does)."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = load_config(default_config_path("PPO", GRASP))
     config.pop("pretrain", None)
@@ -107,7 +109,8 @@ def test_training_with_several_envs_evaluates_in_two_processes_with_the_one_proc
     from bh8_gym.agents.evaluation import eval_worker
     from bh8_gym.agents.evaluation.evaluate import summarize
     from bh8_gym.agents.evaluation.run_files import read_evaluations
-    from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     split_runs = []
     original_run = eval_worker.EvaluationWorker.run
@@ -134,7 +137,8 @@ def test_a_trainer_given_one_process_steps_its_envs_and_evaluates_in_this_proces
     and no evaluation worker: it keeps to the CPUs it was given, and its figures are the same."""
     from bh8_gym.agents.evaluation import eval_worker
     from bh8_gym.agents.evaluation.run_files import read_evaluations
-    from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     split_runs = []
     monkeypatch.setattr(eval_worker.EvaluationWorker, "__init__",

@@ -36,7 +36,7 @@ def _export_random_policy(tmp_path_factory, env_kwargs: dict):
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.deployment.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     env = make_env(ENV_ID, {"randomize": False, **env_kwargs})
     try:

@@ -2,7 +2,7 @@
 says it trusts the file, and a damaged one is refused before the hand is touched.
 
 An SB3 .zip stores non-JSON settings as cloudpickles that SB3's loader unpickles (running their
-code); agents/deployment/policy_file.py rebuilds the known ones without unpickling. An exported .npz holds
+code); agents/deployment/sb3_file.py rebuilds the known ones without unpickling. An exported .npz holds
 only arrays (np.load with allow_pickle=False); its layers must chain. `bh8 deploy` exit status 2
 is "a policy deploy refuses" (its --help).
 """

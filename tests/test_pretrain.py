@@ -35,7 +35,7 @@ def _grasp_config(pretrain: dict) -> dict:
     ({"keep_floor": -0.1}, "keep_floor must be in"),
 ])
 def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, message):
-    from bh8_gym.agents.training.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     with pytest.raises(TrainingError, match=message):
         Trainer(_grasp_config(table), tmp_path / "run", n_envs=1, progress=False)
@@ -43,7 +43,7 @@ def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, m
 
 
 def test_pretrain_needs_ppo(tmp_path):
-    from bh8_gym.agents.training.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _grasp_config({})
     config["algorithm"] = "SAC"
@@ -93,7 +93,7 @@ def test_cloned_actor_acts_like_the_script_on_its_demonstrations():
 
 def test_a_warm_started_run_evaluates_the_cloned_policy_at_step_zero(tmp_path):
     from bh8_gym.agents.evaluation.run_files import read_evaluations
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 2})
     out = tmp_path / "run"
@@ -108,7 +108,7 @@ def test_keeping_the_demonstrations_during_rl_and_resuming_with_them(tmp_path):
     """keep_weight > 0: the demonstrations are saved in the run directory, RL's rollouts end with
     cloning minibatches (logged weight decays), and a resumed run reads them back."""
     from bh8_gym.agents.training.pretrain import DEMONSTRATIONS_FILE, load_demonstrations
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 1, "action_noise": 0.1,
                             "keep_weight": 1.0, "keep_batches": 2})

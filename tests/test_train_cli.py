@@ -127,7 +127,7 @@ def test_a_kill_during_a_checkpoint_leaves_a_model_and_state_of_the_same_step(tm
     then finishes with no staged or temporary file left."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.training.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _write_config(tmp_path / "tiny.toml", checkpoint_freq=32)
     run = tmp_path / "run"

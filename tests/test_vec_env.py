@@ -184,7 +184,8 @@ def test_training_on_sharded_envs_is_the_run_subproc_vec_env_gives(tmp_path):
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
     from bh8_gym.agents.env_factory import EnvFactory
-    from bh8_gym.agents.training.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     class SubprocTrainer(Trainer):
         def _vec_env(self):

@@ -237,7 +237,10 @@ class Deployment:
         self.blocks += 1
         return feedback
 
-    def _check_limits(self, feedback) -> None:
+    def _stop_on_strain_or_temperature(self, feedback) -> None:
+        """SafetyStop when the feedback block shows a finger's strain above the envelope's limit
+        (`--max-strain`) or the hand hotter than its `--max-temperature`: `run` then sends the zero
+        block, ^C and the exit action."""
         stop = (self.envelope.strain_violation((motor, data.strain) for motor, data in feedback.motors.items())
                 or self.envelope.temperature_violation(feedback.temperature))
         if stop is not None:
@@ -265,7 +268,7 @@ class Deployment:
                            else time.monotonic() - start)
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
                 while self.policy_cycles < cycles and self._stop_request is None:
-                    self._check_limits(feedback)
+                    self._stop_on_strain_or_temperature(feedback)
                     try:
                         unit, _ = self.policy.predict(observation, deterministic=True)
                     except Exception as error:  # the hand still gets the stop block, ^C and exit action
@@ -280,7 +283,7 @@ class Deployment:
                     elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
                                else time.monotonic() - start)
                     observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
-                self._check_limits(feedback)
+                self._stop_on_strain_or_temperature(feedback)
                 if self._stop_request is not None:
                     reason = self._stop_request
             except SafetyStop as stop:

@@ -32,7 +32,8 @@ from bh8_gym.agents.evaluation.eval_worker import (
     ScriptJob,
     one_torch_thread,
 )
-from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
+from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, load_policy
+from bh8_gym.agents.deployment.policy_io import atomic_write
 from bh8_gym.agents.evaluation.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.agents.training.config_check import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument

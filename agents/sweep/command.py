@@ -178,7 +178,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         ranked,
         test_evaluation,
     )
-    from bh8_gym.agents.deployment.policy_file import atomic_write
+    from bh8_gym.agents.deployment.policy_io import atomic_write
 
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,
@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
         print(INSTALL_HINT, file=sys.stderr)
         return 2
     from bh8_gym.agents.sweep.report import COMPLETE, ERROR, PENDING, STOPPED, collect
-    from bh8_gym.agents.training.train import TrainingError
+    from bh8_gym.agents.training.trainer import TrainingError
 
     try:
         settings = resumed_settings(args) if args.resume is not None else new_settings(args)

@@ -19,7 +19,8 @@ import numpy as np
 
 from bh8_gym.agents.sweep.space import describe
 from bh8_gym.agents.sweep.trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
-from bh8_gym.agents.training.train import BEST_MODEL_FILE, CHECKPOINT_DIR
+from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
+from bh8_gym.agents.training.trainer import CHECKPOINT_DIR
 
 REPORT_FILE = "sweep.md"
 PLOT_FILE = "validation_curves.png"

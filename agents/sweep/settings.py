@@ -41,7 +41,8 @@ def _absolute_object_files(config: dict) -> None:
 
 def new_settings(args: argparse.Namespace) -> dict:
     """The settings of a new sweep from its config and the command line, checked (`check_settings`)."""
-    from bh8_gym.agents.training.train import _check_config, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import _check_config
 
     if args.out is None:
         raise SweepConfigError("--out DIR is required (or --resume DIR to continue a sweep)")
@@ -177,7 +178,7 @@ def check_settings(settings: dict) -> dict:
 
 
 def write_settings(settings: dict) -> None:
-    from bh8_gym.agents.training.train import write_json_atomic
+    from bh8_gym.agents.evaluation.run_files import write_json_atomic
 
     sweep_dir = Path(settings["sweep_dir"])
     sweep_dir.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,9 @@ from typing import BinaryIO
 
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_file import POLICY_FILE_LIMIT_BYTES, SB3_DATA_LIMIT_BYTES
+from bh8_gym.agents.deployment.policy_io import POLICY_FILE_LIMIT_BYTES
+
+from bh8_gym.agents.deployment.sb3_file import SB3_DATA_LIMIT_BYTES
 
 REPLAY_BUFFER_FILE = "latest_replay_buffer.npz"
 LEGACY_REPLAY_BUFFER_FILE = "latest_replay_buffer.pkl"  # SB3's pickle, written before the .npz
