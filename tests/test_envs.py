@@ -22,7 +22,8 @@ from hypothesis.extra.numpy import arrays
 import bh8_gym  # noqa: F401  (registers the environments)
 from bh8_gym.envs import ENV_IDS
 from bh8_gym.envs.randomization import RandomizationRanges, sample_plant_parameters
-from bh8_gym.envs.wrappers import ContinuousActions, bytes_to_unit, unit_to_bytes
+from bh8_gym.action_bytes import bytes_to_unit, unit_to_bytes
+from bh8_gym.envs.wrappers import ContinuousActions
 from bh8_gym.firmware import REALTIME_PROCESSING_S
 from bh8_gym.plant import PlantParameters
 from bh8_gym.realtime_codec import MotorFlags

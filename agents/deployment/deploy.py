@@ -11,7 +11,7 @@ and keyword arguments without the simulator: deploy never loads PyBullet):
    reports must be the env's, or deploy refuses to run; Ctrl-C here sends ^C (stopping HI) and
    switches the rate back;
 2. every cycle: policy(observation) -> floats in [-1, 1] -> LOOP bytes with the env's own mapping
-   (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
+   (action_bytes.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
    block is decoded by the client's LoopLayout and turned into the next observation by the
    interface's observation builder (the same code the policy was trained on);
 3. stop on the cycle budget, Ctrl-C, SIGTERM or SIGHUP (at the next cycle boundary: a block is
@@ -54,11 +54,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bh8_gym.action_bytes import unit_to_bytes
 from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import BarrettHand
 from bh8_gym.envs.interfaces import interface_for
-from bh8_gym.envs.wrappers import unit_to_bytes
 from bh8_gym.loop_interface import LoopInterface
 from bh8_gym.protocol import BAUD_RATES
 from bh8_gym.safety import NO_VELOCITY_CLAMP, SafetyEnvelope

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bh8_gym.envs.wrappers import bytes_to_unit
+from bh8_gym.action_bytes import bytes_to_unit
 from bh8_gym.loop_interface import END_TOLERANCE_S
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
