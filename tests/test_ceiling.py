@@ -98,7 +98,7 @@ def test_run_scripts_records_what_bh8_eval_measures():
 
 
 def test_the_teacher_teaches_objects_alike_alike(monkeypatch):
-    """agents/teacher.choose_scripts: of the scripts that hold an episode, the one that holds most
+    """agents/training/teacher.choose_scripts: of the scripts that hold an episode, the one that holds most
     of that object family; the family's best where none holds it."""
     from bh8_gym.agents.training import teacher
 

@@ -1,6 +1,6 @@
 """The ceiling: how much room a per-object choice of grasp leaves over the best fixed script.
 
-A family of scripted grasps (`agents/baselines.FAMILY`: the LOOP and squeeze scripts at settings
+A family of scripted grasps (`agents/evaluation/baselines.FAMILY`: the LOOP and squeeze scripts at settings
 that span closing velocity, gain, spread, strain target and softness) runs on the same episodes. Per object set it gives
 
 - the best single script (what a lab gets by picking one script on these objects),
@@ -10,8 +10,8 @@ that span closing velocity, gain, spread, strain target and softness) runs on th
   ones the arm's table-contact grasp is for, envs/scenes.py), when the record has the heights.
 
 The union minus the best single script is the room a policy that picks its grasp per object can
-win; `benchmarks/bench_ceiling.py` measures it and the README's results table reports it beside
-the policy. The same record of which script holds which episode labels the teacher of
+win; `benchmarks/bench_ceiling.py` measures it and docs/agents.md's Results report it beside the
+policy. The same record of which script holds which episode labels the teacher of
 `agents/training/teacher.py` on the training objects.
 """
 from __future__ import annotations
