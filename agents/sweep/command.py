@@ -25,7 +25,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_EPISODES, MAX_SEED, MAX_TIMESTEPS
+from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
+from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_TIMESTEPS
 from bh8_gym.agents.sweep.cluster import (
     CONNECT_TIMEOUT_S,
     MAX_CPUS,
