@@ -23,6 +23,8 @@ import re
 import reprlib
 from typing import Any
 
+from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
+
 ALGORITHMS = ("PPO", "SAC")
 # torch.nn class of each `activation` name in [policy_kwargs]
 ACTIVATION_CLASSES = {"tanh": "Tanh", "relu": "ReLU", "elu": "ELU", "leaky_relu": "LeakyReLU", "silu": "SiLU"}
@@ -32,8 +34,6 @@ MAX_DEPTH = 16  # tables and lists inside each other (TOML's dotted headers can 
 MAX_CONFIG_BYTES = 1 << 20
 MAX_TIMESTEPS = 10**10  # about four months of env steps at 1000 a second
 MAX_ENVS = 256
-MAX_EPISODES = 10**6
-MAX_SEED = 2**32 - 1  # numpy's and SB3's seeds
 MAX_ROLLOUT = 10**6  # PPO's n_steps x n_envs transitions held in memory
 MAX_REPLAY = 10**7  # SAC's buffer_size transitions held in memory
 MAX_LAYERS = 16
@@ -282,7 +282,7 @@ POLICY_KWARGS = {
             "n_critics": Integer(1, 10)},
 }
 PRETRAIN_KEYS = {
-    "baseline": Text(("loop", "squeeze")),  # agents.baselines.LOOP_BASELINES (checked equal in the tests)
+    "baseline": Text(("loop", "squeeze")),  # agents.evaluation.baselines.LOOP_BASELINES (checked equal in the tests)
     "baseline_kwargs": Table({}),  # the baseline class's keywords, checked in `_check_pretrain`
     "episodes": Integer(1, 100_000),
     "epochs": Integer(1, 10_000),
@@ -460,7 +460,7 @@ def check_rollout(config: dict, n_envs: int) -> None:
 
 
 def _check_pretrain(config: dict) -> None:
-    from bh8_gym.agents import baselines
+    from bh8_gym.agents.evaluation import baselines
 
     if config["algorithm"] != "PPO":
         raise ConfigError("[pretrain] warm-starts an actor-critic: it needs PPO")

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bh8_gym.envs.wrappers import bytes_to_unit
+from bh8_gym.action_bytes import bytes_to_unit
 from bh8_gym.loop_interface import END_TOLERANCE_S
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
@@ -325,7 +325,7 @@ def make_baseline(name: str, env, **settings):
 
 SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts (SPEC.md §1)
 
-# The ceiling family (agents/ceiling.py measures it): name -> (baseline, its settings). Every script is
+# The ceiling family (agents/evaluation/ceiling.py measures it): name -> (baseline, its settings). Every script is
 # object-blind: it reads only the feedback blocks.
 FAMILY: dict[str, tuple[str, dict]] = {
     "loop": ("loop", {}),
