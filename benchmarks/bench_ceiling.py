@@ -26,7 +26,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from bh8_gym.agents.evaluation.baselines import FAMILY
+from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.evaluation.ceiling import (
     LOW_OBJECT_HEIGHT,
     CeilingRecord,

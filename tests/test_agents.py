@@ -920,7 +920,7 @@ def test_stalled_fingers_follow_the_firmwares_stall_rule_and_stay_stalled():
     """§5.5 case 1 at the default TSTOP, as a host sees it in LFAP: a finger that has closed 1000
     counts and then moved under 10 counts in 30 ms has stalled (and stays so: its worm holds it,
     §9.3.1); one still moving, or standing before it has closed 1000 counts, has not."""
-    from bh8_gym.agents.evaluation.baselines import StalledFingers
+    from bh8_gym.agents.grasps import StalledFingers
 
     watch = StalledFingers()
     dt = 0.004  # a cycle

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from bh8_gym.agents.evaluation.baselines import FAMILY
+from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.evaluation.ceiling import CeilingRecord, load_records, save_records, summarize_ceiling
 
 
@@ -63,7 +63,7 @@ def test_records_round_trip_and_refuse_other_episodes(tmp_path):
 def test_the_family_has_a_dozen_object_blind_scripts():
     """Issue 27: at least 12 scripts; every one builds on the grasp env (a wrong setting would be a
     ValueError naming it) and acts from the feedback blocks only."""
-    from bh8_gym.agents.evaluation.baselines import make_script
+    from bh8_gym.agents.grasps import make_script
     from bh8_gym.agents.env_factory import make_env
 
     assert len(FAMILY) >= 12

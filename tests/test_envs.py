@@ -180,7 +180,7 @@ def test_a_seed_replays_exactly_whatever_the_env_ran_before():
     episodes: the scripted LOOP grasp on a held-out object gives the same observations in a fresh
     env and in one that grasped another object first. restoreState kept the last episode's contact
     manifolds, and their order changed the solver's; the trajectories parted after ~250 steps."""
-    from bh8_gym.agents.evaluation.baselines import LoopBaseline
+    from bh8_gym.agents.grasps import LoopBaseline
     from bh8_gym.agents.env_factory import make_env  # the env as `bh8 eval` wraps it
 
     def episode(env, seed):

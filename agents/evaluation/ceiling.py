@@ -1,6 +1,6 @@
 """The ceiling: how much room a per-object choice of grasp leaves over the best fixed script.
 
-A family of scripted grasps (`agents/evaluation/baselines.FAMILY`: the LOOP and squeeze scripts at settings
+A family of scripted grasps (`agents/grasps.FAMILY`: the LOOP and squeeze scripts at settings
 that span closing velocity, gain, spread, strain target and softness) runs on the same episodes. Per object set it gives
 
 - the best single script (what a lab gets by picking one script on these objects),
@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from bh8_gym.agents.evaluation.baselines import make_script
+from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import object_name, run_episodes
 from bh8_gym.agents.evaluation.run_files import write_json_atomic

@@ -21,7 +21,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bh8_gym.agents.evaluation.baselines import BASELINES, FAMILY, make_grasp
+from bh8_gym.agents.evaluation.baselines import BASELINES, make_grasp
+from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import EpisodeResult
 from bh8_gym.agents.evaluation.eval_worker import (

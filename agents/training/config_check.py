@@ -460,6 +460,7 @@ def check_rollout(config: dict, n_envs: int) -> None:
 
 
 def _check_pretrain(config: dict) -> None:
+    from bh8_gym.agents import grasps
     from bh8_gym.agents.evaluation import baselines
 
     if config["algorithm"] != "PPO":
@@ -470,10 +471,10 @@ def _check_pretrain(config: dict) -> None:
     keys = dict(PRETRAIN_KEYS)
     baseline = table.get("baseline", "squeeze") if isinstance(table, dict) else None
     if baseline in baselines.LOOP_BASELINES:
-        classes = {"loop": baselines.LoopBaseline, "squeeze": baselines.SqueezeBaseline}
+        classes = grasps.LOOP_SCRIPTS
         names = [name for name in inspect.signature(classes[baseline]).parameters if name != "env"]
         keys["baseline_kwargs"] = Table({name: Either((Real(-1e9, 1e9), Flag(), Text())) for name in names})
-    keys["teacher"] = ListOf(Text(tuple(baselines.FAMILY)), 1, len(baselines.FAMILY))
+    keys["teacher"] = ListOf(Text(tuple(grasps.FAMILY)), 1, len(grasps.FAMILY))
     _check_table(config, "pretrain", keys, "")
     if table.get("keep_floor", 0.0) > table.get("keep_weight", 0.0):
         raise ConfigError(f"[pretrain] keep_floor must be in [0, keep_weight], got {table['keep_floor']}")

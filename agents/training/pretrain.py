@@ -3,7 +3,7 @@
 From scratch, PPO on BH8Grasp-v0 spends its first 100 k+ steps dropping objects (0 % on the
 validation objects at 50 k and 100 k steps with the default config): the success bonus is rare
 until the fingers close, stop at contact and keep a squeeze inside the strain limit in one
-episode. A scripted grasp (agents/evaluation/baselines.py) already does that on about half of the objects.
+episode. A scripted grasp (agents/grasps.py) already does that on about half of the objects.
 So the `[pretrain]` table of a config records that grasp on the training objects (the training
 env itself: same observations, randomisation and safety envelope), fits the actor's mean action to
 its actions and the critic to the discounted returns it earned, and RL starts from there. The
@@ -74,7 +74,7 @@ class PretrainSettings:
                      else table["teacher"]}
         settings = cls(**table)
         if settings.teacher:
-            from bh8_gym.agents.evaluation.baselines import FAMILY
+            from bh8_gym.agents.grasps import FAMILY
 
             if not (isinstance(settings.teacher, tuple) and all(name in FAMILY for name in settings.teacher)):
                 raise ValueError(f"[pretrain] teacher must be a list of the ceiling family's scripts "

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bh8_gym.agents.evaluation.baselines import make_script
+from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.training.pretrain import Demonstrations, clone, discounted_returns, progress_bar
 
