@@ -189,7 +189,8 @@ class GraspChoicePolicy:
                      else self.probe.act(observation, info))
             if attempt_elapsed < self.settings.decision_seconds:
                 return probe
-            scores = self.selector(self.decision_features())
+            self.decided_features = self.decision_features()
+            scores = self.selector(self.decided_features)
             self.chosen = int(np.argmax(scores))
             self.phase = "grasp"
             self.decisions.append({"at": self.elapsed, "grasp": self.settings.grasps[self.chosen],
