@@ -51,10 +51,14 @@ class Clutch:
                 opening_peak = -inner_speed
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
-            if velocity < 0.0 and drive_on[f]:
+            if drive_on[f] and velocity < 0.0:
                 # A rotor driven open keeps no closing speed: the next close's impacts lose only what
                 # that close reached (a remembered faster close made its start look held back).
                 closing_peak = 0.0
+            elif drive_on[f] and velocity > 0.0:
+                # Nor does a rotor driven closed keep an opening speed: the next open's blow on the
+                # stop preloads with what that open reached, not with an earlier, faster open.
+                opening_peak = 0.0
             closing_peaks[f], opening_peaks[f] = closing_peak, opening_peak
             if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
                 motor_torques[f] = 0.0
