@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 
+import pybullet as p
+
 from bh8_gym.plant.joints import (
     FINGER_JOINTS,
     INNER_COUNTS_PER_RAD,
@@ -87,7 +89,8 @@ class Clutch:
                         blow = 1.0 - state.outer_loads[f] / tip_blow if state.outer_loads[f] > 0.0 else 1.0
                         if lost > 0.0 and blow > 0.0:
                             clutch += impact_gain * lost * blow * (clutch / capacity if clutch < capacity else 1.0)
-                        if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f]:
+                        if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f] \
+                                and (q[i2] >= inner_closed or self._finger_touches(f)):
                             self._break_away(f)
                 elif velocity < 0.0 and q[i2] <= inner_open:
                     # Driven against the open stop: the clutch is tightened with the motor's torque plus
@@ -129,6 +132,15 @@ class Clutch:
         loss = (state.temperature - prm.ambient_temperature) / prm.thermal_resistance
         state.temperature += self.dt * (power - loss) / prm.heat_capacity
         state.time += self.dt
+
+    def _finger_touches(self, f: int) -> bool:
+        """Whether finger f's links touch anything (an object, the table, another finger) after this
+        step: only something the finger meets holds its inner link back (§9.3.1: "If the inner finger
+        link, while closing, contacts a target object ..."; one met by the outer link near its joint
+        holds the inner link too). A finger its own drive cannot carry (a few % of duty at a profile's
+        start, its weight on it) slows with its rotor, and no impact passes the clutch."""
+        hand, client = self.hand_id, self._client
+        return any(p.getContactPoints(bodyA=hand, linkIndexA=link, physicsClientId=client) for link in self._finger_links[f])
 
     def _break_away(self, f: int) -> None:
         state = self._state
