@@ -171,3 +171,34 @@ def test_deploy_runs_the_choice_block_for_block(tmp_path, n_features):
     records = [json.loads(line) for line in log.read_text().splitlines()]
     served = [bytes.fromhex(r["control"]) for r in records if "cycle" in r][1:len(ours) + 1]  # after the "A" block
     assert served == ours
+
+
+def test_the_decision_env_passes_both_checkers_and_ppo_starts_as_the_selector(n_features):
+    """RL over the discrete choice: `DecisionEnv` is a Gymnasium env (both checkers pass) whose
+    action is the grasp; PPO warm-started from a selector picks, deterministically, what it picks."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    from bh8_gym.agents.choice.decision_env import DecisionEnv, selector_of, warm_started_ppo
+
+    env = DecisionEnv(env_kwargs={"object_set": "primitives-train", "randomize": False}, settings=SETTINGS)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # the features' Box is unbounded
+            check_env(env, skip_render_check=True)
+            sb3_check_env(env)
+        rng = np.random.default_rng(2)
+        selector = SuccessModel(rng.normal(size=n_features), rng.uniform(0.5, 2.0, n_features),
+                                [rng.normal(size=(n_features, 8)), rng.normal(size=(8, 3))],
+                                [rng.normal(size=8), rng.normal(size=3)])
+        model = warm_started_ppo(selector, env, n_steps=8, batch_size=8)
+        x = rng.normal(size=(64, n_features)).astype(np.float32)
+        assert (model.predict(x, deterministic=True)[0] == selector(x).argmax(1)).all()
+        assert (selector_of(model, n_features)(x).argmax(1) == selector(x).argmax(1)).all()
+        env.reset(seed=0)
+        _, reward, terminated, truncated, info = env.step(1)
+        assert terminated and not truncated and reward == float(info["is_success"]) and info["grasp"] == "squeeze"
+    finally:
+        env.close()
