@@ -75,7 +75,7 @@ def test_a_motor_that_never_moved_is_named_and_the_rest_fitted(tmp_path):
     log = read_log(path)
     rollouts = LocalRollouts(path.read_bytes(), str(path), jobs=1)
     try:
-        result = fit(log, rollouts, iterations=3)
+        result = fit(log, rollouts, iterations=2)
     finally:
         rollouts.close()
     status = {p.name: p.status for p in result.parameters}

@@ -20,18 +20,17 @@ pads, heat) may be set, each within a range that still describes a BH8-262; the 
 (time step, table, wrist pose, solver) are the environment's and are refused, and so is any
 unknown key or table. `load_hand_parameters` bounds the read (a regular file of at most
 MAX_HAND_FILE_BYTES) and raises HandFileError with one line naming the key. `write_hand_parameters`
-writes atomically (a temporary file renamed over the target) and reads the result back through the
-same checks.
+writes atomically (bh8_gym.atomic_files) and reads the result back through the same checks.
 """
 from __future__ import annotations
 
 import math
 import os
-import tempfile
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from bh8_gym.atomic_files import atomic_write
 from bh8_gym.calibration.log_format import read_bounded
 from bh8_gym.plant.parameters import PlantError, PlantParameters
 
@@ -225,20 +224,7 @@ def write_hand_parameters(path: str | os.PathLike, hand: HandParameters, comment
     text = format_hand_parameters(hand, comment)
     parse_hand_parameters(text, str(path))  # refuse before touching the disk
     target = Path(path)
-    directory = target.parent if str(target.parent) else Path(".")
-    descriptor, temporary = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(descriptor, "w", encoding="utf-8") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temporary, target)
-    except BaseException:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
-        raise
+    atomic_write(target, lambda handle: handle.write(text.encode("utf-8")))
     loaded = load_hand_parameters(target)
     if loaded.values != hand.values:
         raise HandFileError(f"{target}: read back {loaded.values} instead of {hand.values}")
