@@ -65,7 +65,7 @@ RETURN_VELOCITY, RETURN_GAIN = 60, 150
 # other for held back and open at half the speed told, or not, by a hair's breadth: the 3:1
 # coupling, docs/modelling.md), and the replay sets the simulated motors to the recorded positions
 # there, at rest (replay.py: anchors).
-REST_CYCLES = 6
+REST_CYCLES = 20
 PHASE_LIMIT_CYCLES = 400  # the longest a phase waits for a motor to reach its end
 # The phases a segment record names after its part ("sweep3.lift"): replay.py sets the simulated
 # motors to the recorded positions where a lift or return starts, residuals.py compares by phase.
@@ -157,7 +157,9 @@ class SweepLaw:
         low, high = _ends(SPREAD_MOTOR)
         self.spread_direction = 1 if positions[SPREAD_MOTOR] < (low + high) / 2 else -1
         self.spread_waits = False  # at its end: it creeps until the next lift or return
-        self.phase, self.left = "lift", PHASE_LIMIT_CYCLES
+        # A sweep starts at rest, whatever the part before it was doing (a phase the last sweep's
+        # cycles cut short): its first lift starts, like every other, with the motors still.
+        self.phase, self.left = "rest-return", REST_CYCLES
         self.phase_started, self._starting = False, True
 
     def _finger_direction(self) -> int:
