@@ -8,6 +8,7 @@ is benchmarks/bench_calibrate.py.
 """
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -16,7 +17,7 @@ import pytest
 
 from bh8_gym.calibration.fit import fit
 from bh8_gym.calibration.hand_file import HandParameters, load_hand_parameters, write_hand_parameters
-from bh8_gym.calibration.log_format import read_log
+from bh8_gym.calibration.log_format import LogWriter, read_log
 from bh8_gym.calibration.recorder import Recorder
 from bh8_gym.calibration.replay import observed, replay
 from bh8_gym.calibration.rollouts import LocalRollouts
@@ -86,7 +87,7 @@ def test_a_motor_that_never_moved_is_named_and_the_rest_fitted(tmp_path):
     assert result.hand_values()["finger_drive_efficiency"] == pytest.approx(0.5, rel=0.1)
 
 
-def test_a_firmware_44_log_replays_on_the_44_firmware(tmp_path):
+def test_a_firmware_44_log_replays_on_the_44_firmware_and_a_real_hands_clock_runs_on(tmp_path):
     path = tmp_path / "hand44.jsonl"
     with BarrettHand("bh8sim://?seed=4&firmware=4.4") as hand:
         assert Recorder(hand, path, "palm-down", scale=0.05).run()[0]
@@ -94,6 +95,25 @@ def test_a_firmware_44_log_replays_on_the_44_firmware(tmp_path):
     assert log.header.profile == "4.4" and log.header.version_text == "4.40"
     replayed, recorded = replay(log, {"strain_offsets": (120, 120, 120)}, anchored=False), observed(log)
     np.testing.assert_array_equal(replayed.positions, recorded.positions)  # the same hand: the same counts
+    # A real hand's clock runs while the host waits (the clock probe says "wall"): the replay lets the
+    # simulated hand run for as long as the logged blocks were apart (here 20 ms each).
+    records = [dict(r) for r in (json.loads(line) for line in path.read_bytes().splitlines())]
+    blocks = 0
+    for record in records:
+        if record["kind"] == "clock":
+            record["hand_clock"] = "wall"
+        if record["kind"] == "block":
+            record["t"], blocks = 1e6 + 0.02 * blocks, blocks + 1
+        elif "t" in record and blocks:
+            record["t"] = 1e6 + 0.02 * blocks - 0.01
+    with LogWriter(tmp_path / "wall.jsonl") as writer:
+        for record in records:
+            writer.write({key: value for key, value in record.items() if key not in ("i", "h")})
+    wall = read_log(tmp_path / "wall.jsonl")
+    assert wall.hand_clock == "wall"
+    times = replay(wall, {}, anchored=False).times
+    # Within a physics step (2 ms) of the logged 20 ms apart, from the second block on.
+    np.testing.assert_allclose(np.diff(times[1:]), 0.02, atol=0.0021)
 
 
 def test_fit_refuses_bad_logs_in_one_line(tmp_path, capsys):
