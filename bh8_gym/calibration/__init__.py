@@ -20,6 +20,6 @@ docs/modelling.md what a log can tell.
 - `hand_file`: `hand.toml`, its strict schema and atomic write (`HandParameters`);
 - `practice`: practice hands drawn away from the defaults (`bh8 calibrate draw`).
 
-`record` needs only the hand (no PyBullet is loaded); `fit` needs the calibrate extra (SciPy,
-matplotlib).
+`record` runs nothing but the client (it simulates nothing); `fit` needs the calibrate extra
+(SciPy, matplotlib).
 """

@@ -4,8 +4,8 @@
     bh8 calibrate fit hand-log.jsonl -o hand.toml
     bh8 calibrate draw --seed 7 -o hidden.toml      # a practice hand for `bh8 serve --hand-parameters`
 
-docs/hardware.md has the lab's procedure. `record` needs only the hand (no PyBullet); `fit` needs
-the calibrate extra (SciPy, matplotlib): pip install "bh8-gym[calibrate]".
+docs/hardware.md has the lab's procedure. `record` simulates nothing (it talks to the hand through
+bh8_gym.client); `fit` needs the calibrate extra (SciPy, matplotlib): pip install "bh8-gym[calibrate]".
 """
 from __future__ import annotations
 
