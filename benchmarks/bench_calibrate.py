@@ -13,8 +13,12 @@ mass), how many standard deviations that is, the replay's position RMS at the de
 (% of range), the log's blocks and the fit's seconds; then per parameter the median and largest
 error and the share within 10 %.
 
+`--free-running DIR` then replays each hand of that run without the replay's anchors (the open-loop
+replay of the whole log) at the defaults and fitted.
+
 Run: python benchmarks/bench_calibrate.py [--hands 10] [--first-seed 1] [--jobs 2] [--mounting palm-up|palm-down]
      [--everything] [--scale 1.0] [--out DIR]
+     python benchmarks/bench_calibrate.py --free-running DIR
 """
 from __future__ import annotations
 
@@ -91,8 +95,31 @@ def one_hand(seed: int, args, work: Path) -> dict:
     return row
 
 
+def free_running(work: Path) -> None:
+    """The replays without anchors (the simulated hand left to itself from the first block to the
+    last, as an open-loop replay of the log), at the defaults and fitted, for every hand in `work`:
+    the position RMS over the same phases the fit compares, % of range."""
+    from bh8_gym.calibration.replay import observed, replay
+    from bh8_gym.calibration.residuals import REPLAY_OFFSETS, ResidualModel
+
+    before, after = [], []
+    for hand in sorted(work.glob("hand*.toml"), key=lambda p: int(p.stem[4:])):
+        log = read_log(work / f"log{hand.stem[4:]}.jsonl")
+        model = ResidualModel(observed(log), log.hand_clock)
+        fitted = {k: v for k, v in load_hand_parameters(hand).values.items() if k != "strain_offsets"}
+        rms = [model.position_rms(replay(log, {**values, "strain_offsets": REPLAY_OFFSETS}, anchored=False))
+               for values in ({}, fitted)]
+        before.append(rms[0])
+        after.append(rms[1])
+        print(f"hand {hand.stem[4:]}: free-running replay RMS {rms[0]:.2f} -> {rms[1]:.2f} % of range", flush=True)
+    print(f"free-running: defaults median {np.median(before):.2f} (min {min(before):.2f}), fitted median "
+          f"{np.median(after):.2f} (max {max(after):.2f}) % of range")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--free-running", type=Path, default=None, metavar="DIR",
+                        help="only: the free-running replays of an earlier run's --out DIR")
     parser.add_argument("--hands", type=int, default=10)
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--jobs", type=int, default=2)
@@ -101,6 +128,9 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--out", type=Path, default=None, help="keep the logs and hand files here")
     args = parser.parse_args()
+    if args.free_running is not None:
+        free_running(args.free_running)
+        return
     work = args.out or Path(tempfile.mkdtemp(prefix="bench-calibrate-"))
     work.mkdir(parents=True, exist_ok=True)
     rows = []
