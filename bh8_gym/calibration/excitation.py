@@ -47,7 +47,7 @@ PROBE_THRESHOLD_COUNTS = 150  # a clock that stood still moves one cycle's worth
 # excitation keeps every motor driven until it leaves LOOP.
 CREEP_VELOCITY = 1
 SWEEP_LOW, SWEEP_HIGH = 600, 6000  # finger counts: 1,800 counts short of where F3 meets the can (7,800)
-SPREAD_LOW, SPREAD_HIGH = 300, 2800
+SPREAD_LOW, SPREAD_HIGH = 600, 2550  # counts: 600 short of its stops (0, 3150), which an overshoot must not meet
 SQUEEZE_VELOCITY = 16  # LCV: 1 count per sample; the duty is LCPG/4 x 1 of 127
 SQUEEZE_STRAIN_BACK_OFF = 200  # a finger whose gauge reads more stops (the envelope stops at 230)
 OPEN_POSITION = 500
@@ -127,7 +127,7 @@ def excitation_program(scale: float = 1.0, calibration_object: str | None = None
     # the drive's strength) and spread gains from where it barely overcomes its friction up.
     sweeps = [
         ((40, 8), (20, 40)), ((40, 12), (20, 80)), ((40, 16), (40, 60)), ((80, 12), (40, 150)),
-        ((80, 24), (60, 100)), ((24, 6), (20, 30)), ((24, 10), (60, 40)), ((60, 40), (30, 200)),
+        ((80, 24), (40, 100)), ((24, 6), (20, 30)), ((24, 10), (30, 40)), ((60, 40), (30, 200)),
     ]
     for index, (finger, spread) in enumerate(sweeps):
         program.append(Sweep(f"sweep{index + 1}", finger, spread, _cycles(900, scale)))

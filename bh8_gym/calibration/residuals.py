@@ -4,8 +4,8 @@ each scaled to one unit of its own kind (`ResidualModel`).
 - finger positions: LFAP of each finger in the sweeps' lift phases (a weak drive lifting the finger
   against its weight), in % of the motor's range (loop_interface.FULL_RANGE_COUNTS);
 - spread positions: LFAP of the spread in the sweeps' lift and return phases, % of its range;
-- strains: each finger's median gauge reading over each squeeze's hold, in counts (the medians: a
-  finger pressing an object jitters by a few counts from cycle to cycle);
+- strains (reported, not fitted by the replays): each finger's mean gauge reading over each
+  squeeze's hold, in counts (a finger pressing an object jitters by a few counts from cycle to cycle);
 - timing: how long each supervisory motion took, in 10 ms (a log of a real hand only: the
   simulated hand's clock stands still while the host waits, so its times say nothing).
 
@@ -13,9 +13,11 @@ The fingers' returns (stiff, helped by their weight) are not compared: there the
 lurches from cycle to cycle (its overrun brake), and the replay sets every motor to the recorded
 positions when the next phase starts (replay.py).
 
-The gauges' offsets enter linearly: each replay runs with `REPLAY_OFFSETS`, and the offsets that
-fit best are read off the rest phases (fingers still, nothing pressing): the median of the
-recorded reading minus the replay's load reading.
+The gauges enter linearly: reading = offset + gain x load (the torque about the outer joint, §9.4).
+Each replay runs with `REPLAY_OFFSETS` and the default gain; the offsets that fit best are read off
+the rest phases (fingers still, nothing pressing: the median of the recorded reading minus the
+replay's load reading), the gain off the squeezes (`strain_gain`: the recorded readings above their
+offsets against the replay's loads, a line through the origin).
 """
 from __future__ import annotations
 
@@ -29,6 +31,8 @@ from bh8_gym.loop_interface import FULL_RANGE_COUNTS
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 REPLAY_OFFSETS = (120, 120, 120)  # gauge offsets every replay runs with (mid-range: nothing clips)
+REPLAY_GAIN = 100.0  # and its gain: PlantParameters' default, counts per N·m
+GAIN_LOAD_SPAN = 0.03  # N·m: squeezes whose loads span less than this tell no gain
 TIMING_SCALE_S = 0.01
 MOVED_COUNTS = 300  # a motor that moved less than this in the phases that tell its parameters did not move
 STRAIN_EVIDENCE_COUNTS = 3  # a squeeze whose gauges moved less than this from rest tells nothing of their gain
@@ -115,8 +119,37 @@ class ResidualModel:
 
     # -- residuals ---------------------------------------------------------------------------
 
-    def groups(self, replayed: Signals) -> dict[str, np.ndarray]:
-        """The scaled residuals of one replay, by signal (module docstring)."""
+    def strain_gain(self, replayed: Signals) -> tuple[float, float] | None:
+        """The gauges' gain (counts per N·m) and its standard deviation read off the squeezes'
+        holds: each finger's mean recorded reading above its offset against the replay's mean load
+        (its reading above REPLAY_OFFSETS over REPLAY_GAIN); None without squeezes whose loads span
+        GAIN_LOAD_SPAN."""
+        if not self.holds:
+            return None
+        offsets = np.array(self.offsets(replayed), dtype=float)
+        loads, readings = [], []
+        for name in self.holds:
+            mask = self._hold_mask(name)
+            recorded = self.observed.strains[mask]
+            usable = np.all((recorded > 0) & (recorded < 255), axis=1)  # a clipped reading says nothing
+            if not usable.any():
+                continue
+            loads.append((np.nanmean(replayed.strains[mask][usable], axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
+            readings.append(np.nanmean(recorded[usable], axis=0) - offsets)
+        if not loads:
+            return None
+        load, reading = np.concatenate(loads), np.concatenate(readings)
+        keep = np.isfinite(load) & np.isfinite(reading)
+        load, reading = load[keep], reading[keep]
+        if load.size < 3 or np.ptp(load) < GAIN_LOAD_SPAN:
+            return None
+        gain = float(load @ reading / (load @ load))
+        spread = float(np.sqrt(np.sum((reading - gain * load) ** 2) / (load.size - 1) / (load @ load)))
+        return gain, spread
+
+    def groups(self, replayed: Signals, gain: float = REPLAY_GAIN) -> dict[str, np.ndarray]:
+        """The scaled residuals of one replay, by signal (module docstring); the squeezes' readings
+        as a gauge of `gain` would give them."""
         recorded = self.observed
         if replayed.positions.shape != recorded.positions.shape:
             raise ValueError(f"the replay gave {replayed.positions.shape[0]} blocks, the log has "
@@ -128,13 +161,13 @@ class ResidualModel:
         if self.spread_column is not None:
             groups["spread positions"] = difference[self.sweep][:, self.spread_column]
         if self.holds:
-            shift = np.array(self.offsets(replayed)) - np.array(REPLAY_OFFSETS)
-            medians = []
+            offsets = np.array(self.offsets(replayed))
+            means = []
             for name in self.holds:
                 mask = self._hold_mask(name)
-                medians.append(np.nanmean(replayed.strains[mask], axis=0) + shift
-                               - np.nanmean(recorded.strains[mask], axis=0))
-            groups["strains"] = np.nan_to_num(np.concatenate(medians))
+                load = (np.nanmean(replayed.strains[mask], axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN
+                means.append(offsets + gain * load - np.nanmean(recorded.strains[mask], axis=0))
+            groups["strains"] = np.nan_to_num(np.concatenate(means))
         if self.timing and len(replayed.durations) == len(recorded.durations):
             groups["timing"] = (replayed.durations - recorded.durations) / TIMING_SCALE_S
         return groups
@@ -144,7 +177,7 @@ class ResidualModel:
         found = self.groups(replayed)
         return np.concatenate([found[name] for name in (groups or found) if name in found])
 
-    def summary(self, replayed: Signals) -> dict[str, float]:
+    def summary(self, replayed: Signals, gain: float = REPLAY_GAIN) -> dict[str, float]:
         """RMS of each signal in its own unit: position % of range per motor, strain counts, timing s."""
         recorded = self.observed
         out = {}
@@ -153,7 +186,7 @@ class ResidualModel:
             mask = self.sweep if motor == SPREAD_MOTOR else self.lift
             if mask.any() and column in (*self.finger_columns, self.spread_column):
                 out[f"motor {motor} position, % of range"] = float(np.sqrt(np.mean(difference[mask, column] ** 2)))
-        groups = self.groups(replayed)
+        groups = self.groups(replayed, gain)
         if "strains" in groups:
             out["strain in the squeezes, counts"] = float(np.sqrt(np.mean(groups["strains"] ** 2)))
         if "timing" in groups:
