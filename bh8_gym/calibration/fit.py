@@ -325,8 +325,10 @@ def fit(log, rollouts, iterations: int = 12, progress=None, clock=time.monotonic
         transform = _log_transform(names)
         covariance = transform @ coordinates @ transform.T
         sigma = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-        spread = np.sqrt(np.clip(np.diag(covariance), 1e-24, None))
-        correlation = covariance / np.outer(spread, spread)
+        # Told apart or not, in the fit's own coordinates (the spread's friction and drive are
+        # correlated as logs by construction, each well known).
+        spread = np.sqrt(np.clip(np.diag(coordinates), 1e-24, None))
+        correlation = coordinates / np.outer(spread, spread)
         correlated = [(names[a], names[b], float(correlation[a, b])) for a in range(len(names))
                       for b in range(a + 1, len(names)) if abs(correlation[a, b]) > CORRELATED]
         for j, parameter in enumerate(keep):
