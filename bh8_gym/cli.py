@@ -17,11 +17,11 @@ SUBCOMMANDS = {
     "serve": ("bh8_gym.commands.serve", "serve the simulated hand's firmware on a pseudo-terminal"),
     "term": ("bh8_gym.commands.term", "interactive GCL terminal for a real or simulated hand"),
     "render": ("bh8_gym.commands.render", "render the simulated hand to a PNG"),
-    "train": ("bh8_gym.agents.train", "train a grasp policy (PPO or SAC)"),
+    "train": ("bh8_gym.agents.training.train", "train a grasp policy (PPO or SAC)"),
     "sweep": ("bh8_gym.agents.sweep.command", "train seeds and hyperparameters as Ray Tune trials, locally or on a cluster"),
-    "eval": ("bh8_gym.agents.evaluate", "evaluate a policy or a scripted baseline"),
-    "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),
-    "deploy": ("bh8_gym.agents.deploy", "run a policy closed-loop on a hand over a serial port"),
+    "eval": ("bh8_gym.agents.evaluation.evaluate", "evaluate a policy or a scripted baseline"),
+    "export": ("bh8_gym.agents.deployment.export", "export a trained policy to a numpy-only file"),
+    "deploy": ("bh8_gym.agents.deployment.deploy", "run a policy closed-loop on a hand over a serial port"),
 }
 
 

@@ -25,7 +25,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from bh8_gym.agents.config_check import MAX_ENVS, MAX_EPISODES, MAX_SEED, MAX_TIMESTEPS
+from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
+from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_TIMESTEPS
 from bh8_gym.agents.sweep.cluster import (
     CONNECT_TIMEOUT_S,
     MAX_CPUS,
@@ -164,7 +165,7 @@ def _tuner(settings: dict, resume: bool):
 
 def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path, bool]:
     """Test evaluation of the chosen model(s) (only once every trial has finished), sweep.md, plot."""
-    from bh8_gym.agents.evaluate import DEFAULT_EVALUATION_SETS
+    from bh8_gym.agents.evaluation.evaluate import DEFAULT_EVALUATION_SETS
     from bh8_gym.agents.sweep.report import (
         COMPLETE,
         PENDING,
@@ -178,7 +179,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         ranked,
         test_evaluation,
     )
-    from bh8_gym.agents.policy_file import atomic_write
+    from bh8_gym.agents.deployment.policy_io import atomic_write
 
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,
@@ -249,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
         print(INSTALL_HINT, file=sys.stderr)
         return 2
     from bh8_gym.agents.sweep.report import COMPLETE, ERROR, PENDING, STOPPED, collect
-    from bh8_gym.agents.train import TrainingError
+    from bh8_gym.agents.training.trainer import TrainingError
 
     try:
         settings = resumed_settings(args) if args.resume is not None else new_settings(args)

@@ -19,7 +19,8 @@ import numpy as np
 
 from bh8_gym.agents.sweep.space import describe
 from bh8_gym.agents.sweep.trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
-from bh8_gym.agents.train import BEST_MODEL_FILE, CHECKPOINT_DIR
+from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
+from bh8_gym.agents.training.trainer import CHECKPOINT_DIR
 
 REPORT_FILE = "sweep.md"
 PLOT_FILE = "validation_curves.png"
@@ -151,7 +152,7 @@ def test_evaluation(record: TrialRecord, sweep_dir: Path, episodes: int, seed: i
     """`bh8 eval` of the trial's best model on the test split, once: its report is kept in
     test/<trial>/ (written to a staging folder renamed into place when complete) and read back on
     later runs instead of evaluating again. Returns bh8 eval's results.json."""
-    from bh8_gym.agents import evaluate
+    from bh8_gym.agents.evaluation import evaluate
 
     target = sweep_dir / TEST_DIR / record.run_dir.name
     done = previous_test(target, episodes, seed, objects)

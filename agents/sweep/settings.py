@@ -1,6 +1,6 @@
 """A `bh8 sweep`'s fixed settings (sweep.json): made from the config and the command line, or read
 back by --resume, and checked the same way either way: the config and every config the search
-space can give as bh8 train checks one (agents/config_check.py), the seeds, the resources and
+space can give as bh8 train checks one (agents/training/config_check.py), the seeds, the resources and
 every number. A resumed sweep writes only where its command line says (`resumed_settings`)."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import argparse
 from datetime import datetime, timezone
 from pathlib import Path
 
-from bh8_gym.agents import config_check
-from bh8_gym.agents.config_check import MAX_ENVS, MAX_TIMESTEPS
+from bh8_gym.agents.training import config_check
+from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_TIMESTEPS
 from bh8_gym.agents.sweep.cluster import check_resources
 from bh8_gym.agents.sweep.space import (
     MAX_TRIALS,
@@ -41,7 +41,8 @@ def _absolute_object_files(config: dict) -> None:
 
 def new_settings(args: argparse.Namespace) -> dict:
     """The settings of a new sweep from its config and the command line, checked (`check_settings`)."""
-    from bh8_gym.agents.train import _check_config, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import _check_config
 
     if args.out is None:
         raise SweepConfigError("--out DIR is required (or --resume DIR to continue a sweep)")
@@ -135,7 +136,7 @@ def resumed_settings(args: argparse.Namespace) -> dict:
 
 def check_settings(settings: dict) -> dict:
     """A sweep's settings (new, or sweep.json's on --resume): every field, the config and every
-    config the search space can give (agents/config_check.py). Returns them."""
+    config the search space can give (agents/training/config_check.py). Returns them."""
     config_check.check_plain(settings)
     config = settings.get("config")
     config_check.check_config(config)
@@ -177,7 +178,7 @@ def check_settings(settings: dict) -> dict:
 
 
 def write_settings(settings: dict) -> None:
-    from bh8_gym.agents.train import write_json_atomic
+    from bh8_gym.agents.evaluation.run_files import write_json_atomic
 
     sweep_dir = Path(settings["sweep_dir"])
     sweep_dir.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,8 @@ import itertools
 import math
 from typing import Any
 
-from bh8_gym.agents import config_check
+from bh8_gym.agents.evaluation.bounds import MAX_SEED
+from bh8_gym.agents.training import config_check
 
 SWEEP_TABLE = "sweep"
 SWEEP_KEYS = ("seeds", "samples", "search", "space")
@@ -46,7 +47,7 @@ def parse_seeds(text: str) -> list[int]:
     """`--seeds 0,1,2,3` (or a range `0-3`) as a list of distinct integers in 0..MAX_SEED, at most
     MAX_SEEDS of them: checked before a range is expanded, so `0-4294967295` is refused at once."""
     seeds: list[int] = []
-    usage = (f"--seeds: expected at most {MAX_SEEDS} seeds in 0..{config_check.MAX_SEED}, as comma-separated "
+    usage = (f"--seeds: expected at most {MAX_SEEDS} seeds in 0..{MAX_SEED}, as comma-separated "
              f"integers or ranges such as 0,1,2 or 0-3")
     if len(text) > 100_000:
         raise SweepConfigError(f"{usage}; got {len(text)} characters")
@@ -57,7 +58,7 @@ def parse_seeds(text: str) -> list[int]:
             low, high = int(low), int(high)  # more than 4300 digits: ValueError
         except ValueError:
             raise SweepConfigError(f"{usage}, got {text!r}") from None
-        if not 0 <= low <= high <= config_check.MAX_SEED or len(seeds) + high - low + 1 > MAX_SEEDS:
+        if not 0 <= low <= high <= MAX_SEED or len(seeds) + high - low + 1 > MAX_SEEDS:
             raise SweepConfigError(f"{usage}, got {part!r}")
         seeds += range(low, high + 1)
     return check_seeds(seeds, "--seeds")
@@ -65,9 +66,9 @@ def parse_seeds(text: str) -> list[int]:
 
 def check_seeds(seeds: Any, where: str) -> list[int]:
     if (not isinstance(seeds, list) or not 0 < len(seeds) <= MAX_SEEDS
-            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= config_check.MAX_SEED
+            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED
                    for s in seeds)):
-        raise SweepConfigError(f"{where}: expected a list of 1..{MAX_SEEDS} integers in 0..{config_check.MAX_SEED}, "
+        raise SweepConfigError(f"{where}: expected a list of 1..{MAX_SEEDS} integers in 0..{MAX_SEED}, "
                                f"got {config_check.shown(seeds)}")
     if len(set(seeds)) != len(seeds):
         raise SweepConfigError(f"{where}: seeds repeat in {seeds!r}")
@@ -199,7 +200,7 @@ def check_sweep(config: dict, sweep: dict) -> None:
 
 
 def check_space_values(config: dict, space: dict[str, dict], n_envs: int) -> None:
-    """Every config the space can give passes bh8 train's checks (agents/config_check.py): each
+    """Every config the space can give passes bh8 train's checks (agents/training/config_check.py): each
     combination of the grid and choice values and of the ends of each range, and for a range one
     value between its ends too (an integer setting drawn from a range would get fractions). The
     checks are intervals, so a draw between two good ends is good. Past MAX_CHECKED_COMBINATIONS

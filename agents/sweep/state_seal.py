@@ -88,7 +88,7 @@ def _mac(key: bytes, digests: dict[str, str]) -> str:
 
 def seal(folder: Path, seal_file: Path, skip: tuple[str, ...] = ()) -> None:
     """Record the files under `folder` (but `skip`) in `seal_file`, authenticated (atomic write)."""
-    from bh8_gym.agents.run_files import write_json_atomic
+    from bh8_gym.agents.evaluation.run_files import write_json_atomic
 
     digests = _digests(Path(folder), skip)
     write_json_atomic(Path(seal_file), {"format": SEAL_FORMAT, "files": digests, "mac": _mac(_key(), digests)})

@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 from bh8_gym.agents.sweep.space import apply_space
-from bh8_gym.agents.train import BEST_MODEL_FILE, Trainer, read_run_json, write_json_atomic
+from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE, write_json_atomic
+from bh8_gym.agents.training.trainer import Trainer, read_run_json
 
 TRIAL_FILE = "trial.json"
 RESULT_FILE = "result.json"

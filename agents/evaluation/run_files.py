@@ -1,6 +1,6 @@
 """The files of a training run directory that `bh8 train` writes and `bh8 eval` reads: the training
 curve (evaluations.csv), the best model, and the atomic writes they and the checkpoints use
-(the whole directory layout is in agents/train.py's docstring)."""
+(the whole directory layout is in agents/training/trainer.py's docstring)."""
 from __future__ import annotations
 
 import csv
@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.policy_file import atomic_write
+from bh8_gym.agents.deployment.policy_io import atomic_write
 
 EVALUATIONS_FILE = "evaluations.csv"
 EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci_high", "mean_return",

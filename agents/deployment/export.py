@@ -1,4 +1,4 @@
-"""`bh8 export`: a trained SB3 policy (.zip) to a numpy-only .npz (see policy_file.py).
+"""`bh8 export`: a trained SB3 policy (.zip) to a numpy-only .npz (see numpy_policy.py).
 
 The exported file carries the run's env id and kwargs (from the run directory's run.json) so
 `bh8 eval` and `bh8 deploy` rebuild the same observation layout and action mapping. After
@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, SB3Policy, add_trust_argument, export_sb3_policy
+from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy, export_sb3_policy
+from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument
+from bh8_gym.agents.deployment.sb3_file import SB3Policy
 from bh8_gym.cli import float_argument, integer_argument
 
 # float32 torch against float64 numpy on a few-layer MLP: differences are ~1e-6; 1e-4 leaves margin

@@ -1,13 +1,13 @@
-"""Scripted grasps a BH8 user would write, evaluated by the same code on the same objects.
+"""The scripted LOOP grasps, host side: each reads only the feedback blocks and writes LOOP bytes,
+so the same object runs in an env, in `bh8 deploy` on a real hand, and as a candidate of the grasp
+choice (`agents/choice/`). `bh8 eval --baseline` runs them (`agents/evaluation/baselines.py` adds the
+supervisory grasp, which needs the firmware).
 
-`SupervisoryBaseline`: leave LOOP, set the spread (SM), close with TC (or C), then
-re-enter LOOP with zero velocity and zero gain (the finger worm drives hold the grasp unpowered,
-SPEC.md §1) while the arm lifts. Every command is GCL bytes written to the env's firmware, as a
-host would send them over the cable.
-
-`LoopBaseline`: the same grasp through RealTime LOOP as a policy on the env's float action space:
-spread driven to its setting by a proportional law on LFAP, then constant closing
-velocity bytes with a constant gain on the fingers (the gain byte sets the grasp force, §6.1).
+`LoopBaseline`: the spread driven to its setting by a proportional law on LFAP, then constant
+closing velocity bytes with a constant gain on the fingers (the gain byte sets the grasp force, §6.1).
+`SqueezeBaseline`: close until contact, then squeeze to a strain target. `Hold`: LCV 0 on the
+fingers, whose worms keep the squeeze they have (§9.3.1), the spread held: what a grasp switches to
+once it has closed far enough.
 
 The spread: F1 and F2 opposite F3 (spread 0, a two-against-one wrap) for every object, so no
 script needs to know what it grasps. The tripod (60°) a BH8 user might set for a ball held none of
@@ -18,19 +18,31 @@ from __future__ import annotations
 
 import numpy as np
 
-from bh8_gym.envs.wrappers import bytes_to_unit
-from bh8_gym.loop_interface import END_TOLERANCE_S
+from bh8_gym.action_bytes import bytes_to_unit
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 GRASP_SPREAD = 0  # encoder counts: F1 and F2 opposite F3 (module docstring)
 
 
+def host_side(env):
+    """The host's side a LOOP script reads: an env's `LoopInterface` (through the env's attributes)
+    or the interface itself (`bh8 deploy`, which has no env): layout, byte space, cycle time, safety."""
+    return getattr(env, "unwrapped", env)
+
+
+def grasp_seconds(host) -> float:
+    """The arm's grasp phase (seconds) for an env or a grasp `LoopInterface` (its task is the arm's phase)."""
+    arm = getattr(host, "arm", None) or host.task.arm
+    return float(arm.grasp_seconds)
+
+
 class _LoopScript:
     """What the scripted LOOP grasps share: the env's layout, its byte space, and the bytes a script
-    sets each cycle turned into the float action of the env's ContinuousActions view."""
+    sets each cycle turned into the float action of the env's ContinuousActions view. `env` is an
+    env or its `LoopInterface` (`host_side`): a script reads only the host's side."""
 
     def __init__(self, env):
-        base = env.unwrapped
+        base = host_side(env)
         self.layout = base.layout
         space = base.action_space  # the env's byte space; the policy speaks floats of ContinuousActions
         self._low = space.low.astype(np.float64)
@@ -114,7 +126,7 @@ class LoopBaseline(_LoopScript):
     def reset(self, env) -> None:
         self.spread_position = 0  # HI leaves the spread at 0 (SPEC.md §4)
         self._cycles = 0  # the host's clock: cycles of the episode's length (randomised per reset)
-        self.cycle_seconds = env.unwrapped.cycle_seconds
+        self.cycle_seconds = host_side(env).cycle_seconds
         if self.stalls is not None:
             self.stalls.reset()
 
@@ -145,64 +157,6 @@ class LoopBaseline(_LoopScript):
                     value = self.capped_gain if over and self.capped_gain is not None else self.gain
             self._bytes[index] = value
         return self._action()
-
-
-class SupervisoryBaseline:
-    """SM (spread), GTC or GC, then hold (LOOP, zero velocity and gain) while the arm lifts."""
-
-    def __init__(self, env, close_command: str = "GTC", spread: int = GRASP_SPREAD):
-        self.spread = int(spread)
-        if close_command not in ("GTC", "GC"):
-            raise ValueError(f"close_command must be 'GTC' or 'GC', got {close_command!r}")
-        self.close_command = close_command
-        base = env.unwrapped
-        self.loop_command = base.loop_command
-        self._hold = np.zeros(base.action_space.shape, dtype=np.float32)
-        # zero velocity and zero gain (LCPG 0 = no torque, SPEC.md §5) in the float action space
-        self._hold[:] = bytes_to_unit(np.zeros(base.action_space.shape), base.action_space.low.astype(float),
-                                      base.action_space.high.astype(float))
-
-    def _command(self, firmware, line: str) -> bytes:
-        reply = firmware.transact(line.encode("ascii") + b"\r")
-        if b"ERR" in reply and not line.startswith("\x03"):
-            raise RuntimeError(f"supervisory baseline: {line!r} failed: {reply!r}")
-        return reply
-
-    def run_episode(self, env, seed: int, tracker, frames=None, every: int = 1):
-        """One episode: returns (return, steps, last info, supervisory seconds, grasp seconds)."""
-        obs, info = env.reset(seed=seed)
-        base = env.unwrapped
-        firmware = base.firmware
-        if frames is not None:
-            frames.append(env.render())
-        start = firmware.time
-        firmware.transact(b"\x03")  # leave LOOP: the hand answers with a prompt
-        self._command(firmware, f"SM {self.spread}")
-        self._command(firmware, self.close_command)
-        grasp_seconds = firmware.time - start
-        if tracker is not None:
-            strains = self._command(firmware, "GFGET SG").split(b"\n\r")[1].split()
-            tracker.observe_strains(np.array([int(s) for s in strains]))
-        firmware.write(self.loop_command.encode("ascii") + b"\r")
-        firmware.run_until_idle()
-        firmware.read()
-        # The arm waits for the close (a user's script lifts after C returns): move the arm's clock
-        # so its schedule is at the start of the lift.
-        base.scene.start_time = firmware.time - base.scene.arm.grasp_seconds
-        # ... and the episode ends with the arm's schedule, as the LOOP policies' do: the env's own
-        # clock (2 s of cycles from LOOP entry) would hold the object through the grasp time again.
-        schedule_end = base.scene.start_time + base.scene.arm.total_seconds - END_TOLERANCE_S
-        total, steps, done = 0.0, 0, False
-        while not done:
-            obs, reward, terminated, truncated, info = env.step(self._hold)
-            if tracker is not None:
-                tracker.observe(info.get("feedback_block"))
-            total += float(reward)
-            steps += 1
-            done = terminated or truncated or firmware.time >= schedule_end
-            if frames is not None and (steps % every == 0 or done):
-                frames.append(env.render())
-        return total, steps, info, grasp_seconds, grasp_seconds
 
 
 class SqueezeBaseline(_LoopScript):
@@ -241,7 +195,7 @@ class SqueezeBaseline(_LoopScript):
         self.wrap_velocity = None if wrap_velocity is None else int(wrap_velocity)
         self.wrap_gain = int(wrap_gain)
         self.spread_tolerance = int(spread_tolerance)
-        base = env.unwrapped
+        base = host_side(env)
         self.close_velocity, self.close_gain = int(close_velocity), int(close_gain)
         self.contact_rise, self.stall_counts, self.stall_cycles = int(contact_rise), int(stall_counts), int(stall_cycles)
         self.squeeze_after = float(squeeze_after)
@@ -250,7 +204,7 @@ class SqueezeBaseline(_LoopScript):
         self.hold_gain, self.spread_gain = int(hold_gain), float(spread_gain)
         self.spread, self.spread_hold_gain = int(spread), int(spread_hold_gain)
         self._cycle_seconds = float(base.cycle_seconds)
-        self._grasp_seconds = float(base.arm.grasp_seconds)
+        self._grasp_seconds = grasp_seconds(base)
         feedback = self.layout.feedback_fields
         self._strain_index = {m: feedback.index((m, "LFS")) for m in FINGER_MOTORS if (m, "LFS") in feedback}
         self._position_index = {m: feedback.index((m, "LFAP")) for m in (*FINGER_MOTORS, SPREAD_MOTOR)
@@ -307,25 +261,9 @@ class SqueezeBaseline(_LoopScript):
         return self._action()
 
 
-BASELINES = ("supervisory", "loop", "squeeze")
-LOOP_BASELINES = ("loop", "squeeze")  # policies on the env's action space: act(observation, info)
-
-
-def make_baseline(name: str, env, **settings):
-    """One of BASELINES for `env` (a ContinuousActions-wrapped BH8Grasp env); `settings` are the
-    class's keyword arguments (a TypeError names a wrong one)."""
-    classes = {"supervisory": SupervisoryBaseline, "loop": LoopBaseline, "squeeze": SqueezeBaseline}
-    if name not in classes:
-        raise ValueError(f"unknown baseline {name!r} (known: {', '.join(BASELINES)})")
-    try:
-        return classes[name](env, **settings)
-    except TypeError as error:
-        raise ValueError(f"baseline {name!r}: {error}") from None
-
-
 SPREAD_60 = 1050  # encoder counts: 60° of the spread's 180° over 3,150 counts (SPEC.md §1)
 
-# The ceiling family (agents/ceiling.py measures it): name -> (baseline, its settings). Every script is
+# The ceiling family (agents/evaluation/ceiling.py measures it): name -> (baseline, its settings). Every script is
 # object-blind: it reads only the feedback blocks.
 FAMILY: dict[str, tuple[str, dict]] = {
     "loop": ("loop", {}),
@@ -347,15 +285,58 @@ FAMILY: dict[str, tuple[str, dict]] = {
 }
 
 
+class Hold(_LoopScript):
+    """Every finger LCV 0 with gain `gain` (its worm keeps the squeeze it has, §9.3.1; App. B A1), the
+    spread held at `spread` by the LOOP scripts' proportional law with gain byte 255: a grasp the
+    choice switches to once the fingers have closed on the object (from the start it never closes)."""
+
+    def __init__(self, env, gain: int = 80, spread: int = GRASP_SPREAD, spread_gain: float = 0.1):
+        super().__init__(env)
+        self.gain, self.spread, self.spread_gain = int(gain), int(spread), float(spread_gain)
+        self._spread_position = self.layout.feedback_fields.index((SPREAD_MOTOR, "LFAP"))
+
+    def reset(self, env=None) -> None:
+        """Nothing to forget: the hold reads only the newest block."""
+
+    def act(self, observation, info=None) -> np.ndarray:
+        values = self.layout.decode_feedback(info["feedback_block"])
+        spread_error = self.spread - values[self._spread_position]
+        for index, (motor, name) in enumerate(self._control_fields):
+            if motor == SPREAD_MOTOR:
+                self._bytes[index] = int(np.clip(self.spread_gain * spread_error, -127, 127)) if name == "LCV" else 255
+            else:
+                self._bytes[index] = 0 if name == "LCV" else self.gain
+        return self._action()
+
+
+LOOP_SCRIPTS = {"loop": LoopBaseline, "squeeze": SqueezeBaseline, "hold": Hold}
+
+# Grasps that only make sense after another one has closed the fingers (the grasp choice's
+# continuations): name -> (script, its settings), as FAMILY.
+CONTINUATIONS: dict[str, tuple[str, dict]] = {
+    "hold": ("hold", {}),
+    "hold-g255": ("hold", {"gain": 255}),
+}
+
+
+def make_loop_script(kind: str, env, **settings):
+    """A LOOP script of `kind` ("loop", "squeeze", "hold") for `env` (an env or its LoopInterface);
+    `settings` are its class's keyword arguments (a TypeError names a wrong one)."""
+    if kind not in LOOP_SCRIPTS:
+        raise ValueError(f"unknown LOOP script {kind!r} (known: {', '.join(LOOP_SCRIPTS)})")
+    try:
+        return LOOP_SCRIPTS[kind](env, **settings)
+    except TypeError as error:
+        raise ValueError(f"script {kind!r}: {error}") from None
+
+
 def make_script(name: str, env):
-    """The family's script `name` for `env` (a ContinuousActions-wrapped BH8Grasp env)."""
-    if name not in FAMILY:
-        raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)})")
-    baseline, settings = FAMILY[name]
-    return make_baseline(baseline, env, **settings)
-
-
-def make_grasp(name: str, env):
-    """A scripted grasp by the name `bh8 eval --baseline` takes: the family's script `name` if there
-    is one, else the baseline `name`, for `env`."""
-    return make_script(name, env) if name in FAMILY else make_baseline(name, env)
+    """The named grasp `name` (the ceiling family's, or a continuation's) for `env`."""
+    if name in FAMILY:
+        kind, settings = FAMILY[name]
+    elif name in CONTINUATIONS:
+        kind, settings = CONTINUATIONS[name]
+    else:
+        raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)}; continuations: "
+                         f"{', '.join(CONTINUATIONS)})")
+    return make_loop_script(kind, env, **settings)

@@ -23,7 +23,7 @@ import traceback
 from pathlib import Path
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.episodes import run_episodes
+from bh8_gym.agents.evaluation.episodes import run_episodes
 
 #: Envs per process that run a policy's episodes at once: a forward pass of a batch of 4
 #: observations costs about what one of 1 does, so it is paid once per 4 env steps
@@ -98,15 +98,17 @@ class PolicyFileJob:
 
     def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
         if self._policy is None:
-            from bh8_gym.agents.policy_file import load_policy
+            from bh8_gym.agents.deployment.policy_file import load_policy
 
             self._policy = load_policy(self.path, trust=self.trust)
             one_torch_thread()
+        if getattr(self._policy, "needs_feedback", False):  # the grasp choice: acts on feedback blocks, like a script
+            return run_episodes(None, envs[0], n_episodes, seed=seed, baseline=self._policy, **kwargs)
         return run_episodes(self._policy, envs, n_episodes, seed=seed, **kwargs)
 
 
 class ScriptJob:
-    """Episodes of a scripted grasp (`agents.baselines.make_grasp(name)`), on one env (a script
+    """Episodes of a scripted grasp (`agents.evaluation.baselines.make_grasp(name)`), on one env (a script
     keeps per-episode state on its env)."""
 
     batched = False
@@ -115,7 +117,7 @@ class ScriptJob:
         self.name = name
 
     def episodes(self, envs, n_episodes: int, seed: int, **kwargs) -> list:
-        from bh8_gym.agents.baselines import make_grasp
+        from bh8_gym.agents.evaluation.baselines import make_grasp
 
         return run_episodes(None, envs[0], n_episodes, seed=seed, baseline=make_grasp(self.name, envs[0]), **kwargs)
 

@@ -3,14 +3,14 @@
 From scratch, PPO on BH8Grasp-v0 spends its first 100 k+ steps dropping objects (0 % on the
 validation objects at 50 k and 100 k steps with the default config): the success bonus is rare
 until the fingers close, stop at contact and keep a squeeze inside the strain limit in one
-episode. A scripted grasp (agents/baselines.py) already does that on about half of the objects.
+episode. A scripted grasp (agents/grasps.py) already does that on about half of the objects.
 So the `[pretrain]` table of a config records that grasp on the training objects (the training
 env itself: same observations, randomisation and safety envelope), fits the actor's mean action to
 its actions and the critic to the discounted returns it earned, and RL starts from there. The
 policy stays an MLP on the host's observations: nothing of the script is needed to deploy it.
 
     [pretrain]
-    baseline = "squeeze"                             # agents.baselines.BASELINES (LOOP ones)
+    baseline = "squeeze"                             # agents.evaluation.baselines.BASELINES (LOOP ones)
     baseline_kwargs = {close_gain = 40, hold_gain = 80}
     episodes = 200                                   # demonstrations, seeds from `seed`
     epochs = 30
@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from bh8_gym.agents.baselines import LOOP_BASELINES, make_baseline
+from bh8_gym.agents.evaluation.baselines import LOOP_BASELINES, make_baseline
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.policy_file import atomic_write_npz
+from bh8_gym.agents.deployment.policy_io import atomic_write_npz
 
 
 @dataclass(frozen=True)
@@ -55,8 +55,8 @@ class PretrainSettings:
     #: The weight never decays below this: without it, the default config held 52-62 % on the
     #: validation objects to 700 k steps and then fell to 0 % once the weight had decayed to nothing.
     keep_floor: float = 0.0
-    #: A teacher instead of `baseline` (agents/teacher.py): scripts of the ceiling family
-    #: (agents/ceiling.py), in order of preference; each training episode is taught by the first
+    #: A teacher instead of `baseline` (agents/training/teacher.py): scripts of the ceiling family
+    #: (agents/evaluation/ceiling.py), in order of preference; each training episode is taught by the first
     #: that holds it, distilled in `dagger_iterations` DAgger iterations (the teacher's action
     #: executed with probability dagger_beta ** iteration).
     teacher: tuple = ()
@@ -74,7 +74,7 @@ class PretrainSettings:
                      else table["teacher"]}
         settings = cls(**table)
         if settings.teacher:
-            from bh8_gym.agents.baselines import FAMILY
+            from bh8_gym.agents.grasps import FAMILY
 
             if not (isinstance(settings.teacher, tuple) and all(name in FAMILY for name in settings.teacher)):
                 raise ValueError(f"[pretrain] teacher must be a list of the ceiling family's scripts "

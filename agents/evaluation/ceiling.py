@@ -1,6 +1,6 @@
 """The ceiling: how much room a per-object choice of grasp leaves over the best fixed script.
 
-A family of scripted grasps (`agents/baselines.FAMILY`: the LOOP and squeeze scripts at settings
+A family of scripted grasps (`agents/grasps.FAMILY`: the LOOP and squeeze scripts at settings
 that span closing velocity, gain, spread, strain target and softness) runs on the same episodes. Per object set it gives
 
 - the best single script (what a lab gets by picking one script on these objects),
@@ -10,9 +10,9 @@ that span closing velocity, gain, spread, strain target and softness) runs on th
   ones the arm's table-contact grasp is for, envs/scenes.py), when the record has the heights.
 
 The union minus the best single script is the room a policy that picks its grasp per object can
-win; `benchmarks/bench_ceiling.py` measures it and the README's results table reports it beside
-the policy. The same record of which script holds which episode labels the teacher of
-`agents/teacher.py` on the training objects.
+win; `benchmarks/bench_ceiling.py` measures it and docs/agents.md's Results report it beside the
+policy. The same record of which script holds which episode labels the teacher of
+`agents/training/teacher.py` on the training objects.
 """
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
-from bh8_gym.agents.baselines import make_script
+from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.episodes import object_name, run_episodes
-from bh8_gym.agents.run_files import write_json_atomic
+from bh8_gym.agents.evaluation.episodes import object_name, run_episodes
+from bh8_gym.agents.evaluation.run_files import write_json_atomic
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
 

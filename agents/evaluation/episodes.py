@@ -1,6 +1,6 @@
 """Running episodes of a policy or a scripted grasp and what each one gives (`EpisodeResult`):
-success, return, length, grasp time and peak strain. `bh8 eval` (agents/evaluate.py) reports them,
-`bh8 train` validates on them and the ceiling (agents/ceiling.py) compares scripts with them.
+success, return, length, grasp time and peak strain. `bh8 eval` (agents/evaluation/evaluate.py) reports them,
+`bh8 train` validates on them and the ceiling (agents/evaluation/ceiling.py) compares scripts with them.
 
 Metrics per episode:
   success     `info["is_success"]` at the episode's last step (the env decides: object lifted
@@ -184,7 +184,7 @@ def run_policy_batch(policy, envs, n_episodes: int, seed: int = 0, progress: boo
     The episodes are the ones `run_episodes` runs on one env (an episode is fixed by its seed,
     tests/test_objects.py, and a deterministic policy's action by its observation), returned in
     episode order; a return can differ in its last digits where an env's earlier episodes changed
-    the order of PyBullet's contacts (agents/eval_worker.py).
+    the order of PyBullet's contacts (agents/evaluation/eval_worker.py).
     """
     slots = [_Slot(env) for env in envs]
     results: list[EpisodeResult | None] = [None] * n_episodes

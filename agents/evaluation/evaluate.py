@@ -3,7 +3,7 @@ table, grasp time, peak strain, safety stops, a training-curve plot and a GIF of
 for a trained policy (SB3 .zip or exported .npz) or a scripted baseline (`--baseline
 supervisory|loop|squeeze`), on one or more object sets (default: the test splits of the random_urdfs
 and of the primitives, bh8_gym.envs.objects) or on object files the user names. The metrics of
-an episode: agents/episodes.py. The episodes run in two processes (agents/eval_worker.py).
+an episode: agents/evaluation/episodes.py. The episodes run in two processes (agents/evaluation/eval_worker.py).
 
 `--compare REPORT` pairs this evaluation with another one on the same episodes (same seeds, so the
 same objects and placements) and prints the exact McNemar test of the two success records.
@@ -21,10 +21,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bh8_gym.agents.baselines import BASELINES, FAMILY, make_grasp
+from bh8_gym.agents.evaluation.baselines import BASELINES, make_grasp
+from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.episodes import EpisodeResult
-from bh8_gym.agents.eval_worker import (
+from bh8_gym.agents.evaluation.episodes import EpisodeResult
+from bh8_gym.agents.evaluation.eval_worker import (
     BATCH_ENVS,
     EvaluationWorker,
     EvaluationWorkerError,
@@ -32,9 +33,10 @@ from bh8_gym.agents.eval_worker import (
     ScriptJob,
     one_torch_thread,
 )
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, atomic_write, load_policy
-from bh8_gym.agents.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
-from bh8_gym.agents.config_check import MAX_EPISODES, MAX_SEED
+from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, load_policy
+from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.evaluation.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
+from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument
 from bh8_gym.rendering import encode_gif, steps_per_frame
 
@@ -233,6 +235,8 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
     frames = []
     try:
         baseline = make_grasp(script, env) if script is not None else None
+        if getattr(policy, "needs_feedback", False):  # the grasp choice acts like a script
+            baseline = policy
         base = env.unwrapped
         if every is None:
             every = steps_per_frame(base.cycle_seconds)
@@ -270,7 +274,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     source.add_argument("policy", nargs="?", type=Path, help="policy file: SB3 .zip or exported .npz")
     source.add_argument("--baseline", choices=scripted_grasps(), metavar="SCRIPT",
                         help="evaluate a scripted baseline: supervisory, loop, squeeze, or any script of the "
-                             "ceiling family (agents/ceiling.py: " + ", ".join(FAMILY) + ")")
+                             "ceiling family (agents/evaluation/ceiling.py: " + ", ".join(FAMILY) + ")")
     parser.add_argument("--env", default=None, help="env id (default: the policy's, else BH8Grasp-v0)")
     parser.add_argument("--episodes", type=integer_argument(1, MAX_EPISODES), default=50,
                         help="episodes per object set (default: %(default)s)")
@@ -357,7 +361,7 @@ def run(args: argparse.Namespace) -> int:
         n_envs = BATCH_ENVS if job.batched else 1
         results = []
         for name in object_sets:
-            # The second half of the episodes in a worker process (agents/eval_worker.py), started
+            # The second half of the episodes in a worker process (agents/evaluation/eval_worker.py), started
             # first: it builds its envs while this process builds its own.
             worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
                       if args.processes > 1 and args.episodes > 1 else None)

@@ -9,11 +9,11 @@ from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.eval_worker import BATCH_ENVS, EvaluationWorker, PolicyJob, predictor
-from bh8_gym.agents.episodes import run_episodes
-from bh8_gym.agents.evaluate import percent, summarize
-from bh8_gym.agents.pretrain import actor_cloning_loss, keep_weight_after
-from bh8_gym.agents.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
+from bh8_gym.agents.evaluation.eval_worker import BATCH_ENVS, EvaluationWorker, PolicyJob, predictor
+from bh8_gym.agents.evaluation.episodes import run_episodes
+from bh8_gym.agents.evaluation.evaluate import percent, summarize
+from bh8_gym.agents.training.pretrain import actor_cloning_loss, keep_weight_after
+from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE, EVALUATION_COLUMNS, append_evaluation, save_model_atomic
 
 
 class EvaluationCallback(BaseCallback):
@@ -38,7 +38,7 @@ class EvaluationCallback(BaseCallback):
         #: BATCH_ENVS validation envs, running episodes at once with one forward pass per step.
         self._envs = []
         #: Half of each evaluation's episodes run in a worker process when training uses several
-        #: processes (agents/eval_worker.py: the same episodes); it ignores `ignore_signals`.
+        #: processes (agents/evaluation/eval_worker.py: the same episodes); it ignores `ignore_signals`.
         self._worker = None
         self._ignore_signals = ignore_signals
         if state.get("next_evaluation", 0) <= 0:

@@ -11,7 +11,7 @@ and keyword arguments without the simulator: deploy never loads PyBullet):
    reports must be the env's, or deploy refuses to run; Ctrl-C here sends ^C (stopping HI) and
    switches the rate back;
 2. every cycle: policy(observation) -> floats in [-1, 1] -> LOOP bytes with the env's own mapping
-   (wrappers.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
+   (action_bytes.unit_to_bytes), clamped to the safety velocity limit; one "C" block; the feedback
    block is decoded by the client's LoopLayout and turned into the next observation by the
    interface's observation builder (the same code the policy was trained on);
 3. stop on the cycle budget, Ctrl-C, SIGTERM or SIGHUP (at the next cycle boundary: a block is
@@ -54,11 +54,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
+from bh8_gym.action_bytes import unit_to_bytes
+from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, check_policy_runs, load_policy
 from bh8_gym.cli import handling_signals, integer_argument
 from bh8_gym.client import BarrettHand
 from bh8_gym.envs.interfaces import interface_for
-from bh8_gym.envs.wrappers import unit_to_bytes
 from bh8_gym.loop_interface import LoopInterface
 from bh8_gym.protocol import BAUD_RATES
 from bh8_gym.safety import NO_VELOCITY_CLAMP, SafetyEnvelope
@@ -237,7 +237,10 @@ class Deployment:
         self.blocks += 1
         return feedback
 
-    def _check_limits(self, feedback) -> None:
+    def _stop_on_strain_or_temperature(self, feedback) -> None:
+        """SafetyStop when the feedback block shows a finger's strain above the envelope's limit
+        (`--max-strain`) or the hand hotter than its `--max-temperature`: `run` then sends the zero
+        block, ^C and the exit action."""
         stop = (self.envelope.strain_violation((motor, data.strain) for motor, data in feedback.motors.items())
                 or self.envelope.temperature_violation(feedback.temperature))
         if stop is not None:
@@ -265,7 +268,7 @@ class Deployment:
                            else time.monotonic() - start)
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
                 while self.policy_cycles < cycles and self._stop_request is None:
-                    self._check_limits(feedback)
+                    self._stop_on_strain_or_temperature(feedback)
                     try:
                         unit, _ = self.policy.predict(observation, deterministic=True)
                     except Exception as error:  # the hand still gets the stop block, ^C and exit action
@@ -280,7 +283,7 @@ class Deployment:
                     elapsed = (base.next_elapsed(elapsed, len(hand.last_control_block), processing_time) if on_cycles
                                else time.monotonic() - start)
                     observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
-                self._check_limits(feedback)
+                self._stop_on_strain_or_temperature(feedback)
                 if self._stop_request is not None:
                     reason = self._stop_request
             except SafetyStop as stop:

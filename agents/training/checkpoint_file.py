@@ -4,7 +4,7 @@ trial's retry).
 SB3's `load` unpickles the pickled entries of a model zip's `data` JSON (schedules, spaces, buffer
 classes) and `load_replay_buffer` unpickles SAC's whole buffer: a checkpoint someone replaced
 would run its code on resume. So a resumed run builds its model from the config in run.json as
-the run started it (plain JSON, checked key by key by agents/config_check.py, schedules and all),
+the run started it (plain JSON, checked key by key by agents/training/config_check.py, schedules and all),
 and takes from the checkpoint only what holds no code:
 
 - the weights and optimiser states: the zip's .pth members under the names the algorithm saves,
@@ -29,7 +29,9 @@ from typing import BinaryIO
 
 import numpy as np
 
-from bh8_gym.agents.policy_file import POLICY_FILE_LIMIT_BYTES, SB3_DATA_LIMIT_BYTES
+from bh8_gym.agents.deployment.policy_io import POLICY_FILE_LIMIT_BYTES
+
+from bh8_gym.agents.deployment.sb3_file import SB3_DATA_LIMIT_BYTES
 
 REPLAY_BUFFER_FILE = "latest_replay_buffer.npz"
 LEGACY_REPLAY_BUFFER_FILE = "latest_replay_buffer.pkl"  # SB3's pickle, written before the .npz

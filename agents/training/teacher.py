@@ -2,7 +2,7 @@
 distilled into the deployable student on the student's own states (DAgger).
 
 The teacher is privileged: for each training episode (a seed of the training env, which is
-deterministic per seed) it runs every script of its list (`agents/ceiling.py`'s family) and grasps
+deterministic per seed) it runs every script of its list (`agents/evaluation/ceiling.py`'s family) and grasps
 with one that holds the object, the one that holds most objects of that family where several do
 (`choose_scripts`). No host knows that: it is what
 the outcome of the episode tells. But it acts only through a script that reads the feedback blocks
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bh8_gym.agents.baselines import make_script
+from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.pretrain import Demonstrations, clone, discounted_returns, progress_bar
+from bh8_gym.agents.training.pretrain import Demonstrations, clone, discounted_returns, progress_bar
 
 
 def choose_scripts(env, scripts: list[str], seeds, progress: bool = False) -> list[tuple[str, bool]]:
