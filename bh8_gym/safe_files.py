@@ -59,6 +59,21 @@ def read_bounded(path: str | os.PathLike, limit: int, what: str = "file",
     return data
 
 
+def open_regular(path: str | os.PathLike, what: str = "file", error: type[ValueError] = FileError):
+    """A binary file object on `path` for a reader that seeks (a zip of gigabytes, SAC's replay
+    buffer), opened as `read_bounded` opens (O_NONBLOCK, fstat on the descriptor) and refused unless
+    it is a regular file, whose size is then what the reader can read."""
+    shown = os.fspath(path) if isinstance(path, (str, os.PathLike)) else repr(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except (OSError, ValueError, TypeError) as exc:
+        raise error(f"{what} {shown!r} cannot be read: {getattr(exc, 'strerror', None) or exc}") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise error(f"{what} {shown!r} is not a regular file")
+    return os.fdopen(fd, "rb")
+
+
 def read_text_bounded(path: str | os.PathLike, limit: int = SMALL_FILE_LIMIT_BYTES, what: str = "file",
                       error: type[ValueError] = FileError) -> str:
     """`read_bounded`, decoded as UTF-8 (an `error` naming the byte that is not)."""
@@ -70,23 +85,24 @@ def read_text_bounded(path: str | os.PathLike, limit: int = SMALL_FILE_LIMIT_BYT
 
 
 def read_json_bounded(path: str | os.PathLike, limit: int = SMALL_FILE_LIMIT_BYTES, what: str = "file",
-                      error: type[ValueError] = FileError) -> Any:
-    """A JSON file read by `read_text_bounded`, NaN and Infinity (not JSON)
-    refused. The caller checks the shape (a schema per file kind)."""
+                      error: type[ValueError] = FileError, constants: bool = False) -> Any:
+    """A JSON file read by `read_text_bounded`; NaN and Infinity (not JSON) refused unless
+    `constants`. The caller checks the shape (`bh8_gym.record_schema`, a schema per file kind)."""
     text = read_text_bounded(path, limit, what, error)
-    return parse_json(text, f"{what} {os.fspath(path)!r}", error)
+    return parse_json(text, f"{what} {os.fspath(path)!r}", error, constants)
 
 
-def parse_json(text: str, what: str, error: type[ValueError] = FileError) -> Any:
-    """`json.loads` with NaN/Infinity refused and a RecursionError (nesting past the
-    interpreter's limit) an `error`, not a traceback."""
+def parse_json(text: str | bytes, what: str, error: type[ValueError] = FileError, constants: bool = False) -> Any:
+    """`json.loads` with NaN/Infinity refused (unless `constants`) and a RecursionError (nesting
+    past the interpreter's limit) an `error`, not a traceback."""
+
     def refuse(constant: str):
         raise error(f"{what} holds {constant}, which is not JSON")
 
     try:
-        return json.loads(text, parse_constant=refuse)
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise error(f"{what} is not valid JSON ({exc})") from None
+        return json.loads(text, parse_constant=None if constants else refuse)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise error(f"{what} is not valid JSON ({str(exc)[:200]})") from None
 
 
 def _size(limit: int) -> str:

@@ -32,6 +32,7 @@ from bh8_gym.agents.training.config_check import (
 )
 from bh8_gym.agents.training.trainer import CHECKPOINT_DIR, Trainer, TrainingError, TrainingInterrupted, read_run_json
 from bh8_gym.cli import integer_argument
+from bh8_gym.safe_files import read_text_bounded
 
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 
@@ -58,13 +59,10 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     [hyperparameters], [policy_kwargs]."""
     path = Path(path)
     try:
-        with path.open("rb") as handle:
-            text = handle.read(MAX_CONFIG_BYTES + 1)
-        if len(text) > MAX_CONFIG_BYTES:
-            raise TrainingError(f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES >> 20} MB: not a config")
-        config = tomllib.loads(text.decode())
-    except FileNotFoundError:
-        raise TrainingError(f"config file {str(path)!r} does not exist") from None
+        if not os.path.lexists(path):
+            raise TrainingError(f"config file {str(path)!r} does not exist")
+        # bounded, and a FIFO is refused rather than waited on
+        config = tomllib.loads(read_text_bounded(path, MAX_CONFIG_BYTES, "config file", TrainingError))
     except tomllib.TOMLDecodeError as exc:
         raise TrainingError(f"config file {str(path)!r} is not valid TOML: {exc}") from None
     except RecursionError:
