@@ -25,10 +25,10 @@ from bh8_gym.agents.evaluation.baselines import BASELINES, make_grasp
 from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import EpisodeResult
+from bh8_gym.child_processes import WorkerDied
 from bh8_gym.agents.evaluation.eval_worker import (
     BATCH_ENVS,
     EvaluationWorker,
-    EvaluationWorkerError,
     PolicyFileJob,
     ScriptJob,
     one_torch_thread,
@@ -365,22 +365,23 @@ def run(args: argparse.Namespace) -> int:
             # first: it builds its envs while this process builds its own.
             worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
                       if args.processes > 1 and args.episodes > 1 else None)
-            envs = []
+            envs, finished = [], False
             try:
                 envs += [make_env(env_id, set_kwargs[name]) for _ in range(n_envs)]
                 kwargs = {"progress": not args.no_progress, "object_set": name}
                 results += (worker.run(job, envs, args.episodes, args.seed, **kwargs) if worker is not None
                             else job.episodes(envs, args.episodes, args.seed, **kwargs))
+                finished = True
             finally:
                 for env in envs:
                     env.close()
                 if worker is not None:
-                    worker.close()
+                    worker.close(graceful=finished)  # after an error or Ctrl-C: killed, not waited for
         paired = None
         if comparison is not None:
             theirs = paired_outcomes(*comparison, results)
             paired = paired_comparison([r.success for r in results], theirs)
-    except (PolicyFileError, FileNotFoundError, ValueError, EvaluationWorkerError) as exc:
+    except (PolicyFileError, FileNotFoundError, ValueError, WorkerDied) as exc:
         print(f"bh8 eval: {exc}", file=sys.stderr)
         return 2
     summary = summarize(results)

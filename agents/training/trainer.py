@@ -489,8 +489,14 @@ class Trainer:
                         demonstrations, self.pretrain, rollout_steps=int(model.n_steps) * self.n_envs,
                         seed=self.seed))
                 callbacks.append(StopCallback(self))
-                model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
-                            tb_log_name=self.config["algorithm"])
+                try:
+                    model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
+                                tb_log_name=self.config["algorithm"])
+                except BaseException:
+                    # SB3 ends its callbacks only when learn returns: the evaluation worker (which
+                    # ignores the stop signals) would outlive the process's exit; killed here at once.
+                    evaluation.close(graceful=False)
+                    raise
                 self.save_checkpoint(model, evaluation.state)
                 if self.stop_signal is not None:
                     raise TrainingInterrupted(self.stop_signal, int(model.num_timesteps))
