@@ -81,6 +81,10 @@ def load_checkpoint(model, path: Path) -> None:
                                   f"{', '.join(missing) or 'nothing'}; unexpected {', '.join(unknown) or 'nothing'})")
         counters = _counters(archive, path)
         params = {name: _torch_member(archive, f"{name}.pth", path) for name in state_dicts}
+        bad = sorted(name for name, value in params.items() if not _finite(value))
+        if bad:  # before: the run went on and stopped later with "action must be finite", no file named
+            raise CheckpointError(f"{str(path)!r}: its {', '.join(bad)} hold NaN or infinite numbers; resume from "
+                                  "an earlier checkpoint or start the run again")
         # SB3 writes the file even when the algorithm has no such variables (then it holds nothing)
         saved_variables = (_torch_member(archive, "pytorch_variables.pth", path)
                            if "pytorch_variables.pth" in names else {})
@@ -92,6 +96,19 @@ def load_checkpoint(model, path: Path) -> None:
                               f"({str(error).splitlines()[0][:200] if str(error) else type(error).__name__})") from None
     for name, value in counters.items():
         setattr(model, name, value)
+
+
+def _finite(value) -> bool:
+    """Whether every floating-point tensor in `value` (a state dict, nested) is finite."""
+    import torch
+
+    if isinstance(value, torch.Tensor):
+        return not value.is_floating_point() or bool(torch.isfinite(value).all())
+    if isinstance(value, dict):
+        return all(_finite(item) for item in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_finite(item) for item in value)
+    return True
 
 
 def _counters(archive: zipfile.ZipFile, path: Path) -> dict[str, int]:
