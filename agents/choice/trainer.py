@@ -83,6 +83,7 @@ class ChoiceTrainer:
         self.validation_episodes = int(config["eval"].get("episodes", 200))
         self.validation_seed = int(config["eval"].get("seed", 10_000))
         self.models = [dict(m) for m in table.get("models", [{}])]
+        self.rl_episodes = int(table.get("rl_episodes", 0))
         self.env_id = config["env_id"]
         self.env_kwargs = dict(config.get("env_kwargs", {}))
         self.eval_env_kwargs = {**self.env_kwargs, **config.get("eval_env_kwargs", {})}
@@ -132,6 +133,34 @@ class ChoiceTrainer:
                     "seed": self.seed, "model": {"hidden": list(hidden), "weight_decay": weight_decay}}
         return GraspChoicePolicy(self.settings, selector, predictor, metadata)
 
+    def fine_tune(self, policy: GraspChoicePolicy, n_features: int, rate: float, seeds: list[int]):
+        """RL over the discrete choice: PPO on `DecisionEnv` from the selector, `rl_episodes` decisions
+        on the training objects; the fine-tuned actor is kept only if it does better on validation."""
+        from stable_baselines3.common.env_util import make_vec_env
+        from stable_baselines3.common.vec_env import SubprocVecEnv
+
+        from bh8_gym.agents.choice.decision_env import DecisionEnv, selector_of, warm_started_ppo
+
+        kwargs = {"env_kwargs": self.env_kwargs, "settings": self.settings}
+        envs = make_vec_env(DecisionEnv, n_envs=self.processes, seed=self.seed, env_kwargs=kwargs,
+                            vec_env_cls=SubprocVecEnv if self.processes > 1 else None,
+                            vec_env_kwargs={"start_method": "forkserver"} if self.processes > 1 else None)
+        try:
+            model = warm_started_ppo(policy.selector, envs, seed=self.seed, n_steps=max(8, 128 // self.processes),
+                                     batch_size=64, n_epochs=4, learning_rate=1e-4, ent_coef=0.0)
+            model.learn(self.rl_episodes)
+        finally:
+            envs.close()
+        tuned = GraspChoicePolicy(self.settings, selector_of(model, n_features), policy.predictor,
+                                  {**policy.metadata, "rl_episodes": self.rl_episodes})
+        tuned_rate = float(np.mean(validate(self.env_id, self.eval_env_kwargs, [tuned.arrays()], seeds,
+                                            self.processes)[0]))
+        keep = tuned_rate > rate
+        self.log(f"RL over the choice ({self.rl_episodes} decisions of PPO from the selector): validation "
+                 f"{tuned_rate * 100:.1f} % against {rate * 100:.1f} % before" + (" <- kept" if keep else " (not kept)"))
+        return (tuned if keep else policy), {"episodes": self.rl_episodes, "rate": tuned_rate, "before": rate,
+                                             "kept": keep, "kept_rate": max(tuned_rate, rate)}
+
     def run(self) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
@@ -154,12 +183,18 @@ class ChoiceTrainer:
                      f"(the probe's grasp {self.settings.probe} alone {rates[0] * 100:.1f} %)"
                      + (" <- kept" if index == best else ""))
         chosen = candidates[best]
-        chosen.metadata["validation"] = {"success_rate": rates[best + 1], "probe_success_rate": rates[0],
+        rl = None
+        if self.rl_episodes:
+            chosen, rl = self.fine_tune(chosen, labels.features.shape[1], rates[best + 1], seeds)
+            best_rate = rl["kept_rate"]
+        else:
+            best_rate = rates[best + 1]
+        chosen.metadata["validation"] = {"success_rate": best_rate, "probe_success_rate": rates[0],
                                          "episodes": len(seeds), "seed": self.validation_seed}
         chosen.save(self.out / POLICY_FILE)
         report = {"labels": summary, "settings": self.settings.__dict__, "models": self.models,
                   "validation": {"episodes": len(seeds), "seed": self.validation_seed, "probe": rates[0],
-                                 "models": rates[1:], "kept": best},
+                                 "models": rates[1:], "kept": best, "rl": rl},
                   "seconds": time.monotonic() - started}
         from bh8_gym.agents.deployment.policy_io import atomic_write
 
