@@ -12,6 +12,7 @@ from our file is the one it built from the original (pybullet_data's own models)
 from __future__ import annotations
 
 import ast
+import hashlib
 import os
 import resource
 import struct
@@ -140,7 +141,7 @@ def _assert_written_by_us(seen: list[tuple[str, str, bytes]]) -> None:
 
 def test_pybullet_is_given_only_files_we_wrote(attack_files, opened_by_pybullet):
     """The hand, a user's meshes and URDFs (the attack files above) and pybullet_data's models:
-    every file any PyBullet call is given lies in this process's private folder and holds only
+    every file any PyBullet call is given lies in our private folder and holds only
     what we write (an OBJ of vertex, object and face lines; a URDF of our elements)."""
     plant = HandPlant(PlantParameters())
     try:
@@ -153,7 +154,9 @@ def test_pybullet_is_given_only_files_we_wrote(attack_files, opened_by_pybullet)
     calls = {call for call, _, _ in opened_by_pybullet}
     assert {"loadURDF", "createCollisionShape", "createVisualShape"} <= calls
     _assert_written_by_us(opened_by_pybullet)
-    assert not os.listdir(pybullet_files.private_folder())  # each removed once PyBullet has read it
+    for _, path, data in opened_by_pybullet:  # named by their content
+        assert os.path.basename(path).split(".")[0] == hashlib.sha256(data).hexdigest()
+    assert not os.stat(pybullet_files.private_folder()).st_mode & 0o077  # no one else may write there
 
 
 def test_only_the_loaders_hand_pybullet_a_file():
