@@ -254,7 +254,7 @@ class SB3Policy:
                                       "bh8-gym saved") from None
             # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model);
             # AttributeError: a zip without its policy.pth
-            except (AssertionError, AttributeError, KeyError, IndexError, *ZIP_ERRORS) as exc:
+            except (AssertionError, AttributeError, KeyError, IndexError, TypeError, *ZIP_ERRORS) as exc:
                 errors.append(f"{algorithm.__name__}: {str(exc)[:200] or type(exc).__name__}")
         else:
             raise PolicyFileError(f"cannot load SB3 model {str(path)!r}: {'; '.join(errors)}")
