@@ -246,15 +246,18 @@ def test_an_edited_sweep_json_is_checked_like_a_new_sweep(tmp_path, field, value
     assert code == 2 and err.count("\n") == 1 and message in err and "Traceback" not in err, err
 
 
-def _trial_files(folder: Path, name: str, seed: int, space: dict | None = None, finished: bool = False) -> Path:
+def _trial_files(folder: Path, name: str, seed: int, space: dict | None = None, finished: bool = False,
+                 sweep_id: str | None = None) -> Path:
+    sweep_id = sweep_id or json.loads((folder / "sweep.json").read_text())["sweep_id"]
     run_dir = folder / "runs" / f"{name}_seed{seed}"
     run_dir.mkdir(parents=True)
     (run_dir / "trial.json").write_text(json.dumps({"trial_id": name, "seed": seed, "space": space or {},
-                                                    "attempts": 1, "wall_seconds": 3.0}))
+                                                    "attempts": 1, "wall_seconds": 3.0, "sweep_id": sweep_id}))
     if finished:
         (run_dir / "result.json").write_text(json.dumps({"metrics": {"best_validation_success": 0.5,
                                                                      "best_mean_return": 1.0},
-                                                         "num_timesteps": 2048, "wall_seconds": 3.0, "attempts": 1}))
+                                                         "num_timesteps": 2048, "wall_seconds": 3.0, "attempts": 1,
+                                                         "sweep_id": sweep_id}))
     return run_dir
 
 
@@ -281,9 +284,25 @@ def test_resume_is_rebuilt_from_our_records_not_from_ray(tmp_path):
     for damaged in ("[1, 2]", '{"metrics": {}, "num_timesteps": "2048"}', '{"metrics": {}, "num_timesteps": 1e308}'):
         (run_dir / "result.json").write_text(damaged)
         assert [r.status for r in collect(settings, {})] == [COMPLETE, STOPPED], damaged
-    (run_dir / "trial.json").write_text(json.dumps({"trial_id": "t0001", "seed": 1,
+    (run_dir / "trial.json").write_text(json.dumps({"trial_id": "t0001", "seed": 1, "sweep_id": settings["sweep_id"],
                                                     "space": {"hyperparameters.gamma": 7}}))
     assert [t["name"] for t in started_trials(settings)] == ["t0000"]  # not one this sweep gives
+
+
+def test_a_trial_copied_from_another_sweep_is_not_taken_for_this_ones(tmp_path):
+    """Finding 12: the seal was not tied to its folder, so sealed state copied between two sweeps of
+    one account passed. The records are tied to their sweep now (sweep.json's sweep_id, written
+    into each trial.json and result.json): a run directory from another sweep is refused by
+    --resume (exit 2) and never counted as finished."""
+    from bh8_gym.agents.sweep.report import collect, started_trials
+    from bh8_gym.agents.sweep.settings import resumed_settings
+
+    folder = _new_sweep_json(tmp_path)
+    settings = resumed_settings(_resume_args(folder))
+    _trial_files(folder, "t0000", 0, finished=True, sweep_id="0123456789abcdef")
+    assert started_trials(settings) == [] and collect(settings, {})[0].status != "complete"
+    code, err = _sweep("--resume", folder)
+    assert code == 2 and "another sweep's trial" in err and err.count("\n") == 1, err
 
 
 @pytest.mark.parametrize("planted", ["test/t0000_seed0.partial", "runs/t0001_seed1", "validation_curves.png",

@@ -162,11 +162,11 @@ def _launches(settings: dict) -> list[tuple[list[dict] | None, int]]:
     their record, (None, n) for n new Optuna configurations. A trial with a result.json is done."""
     from bh8_gym.agents.sweep.report import started_trials
 
+    started = started_trials(settings, strict=True)
     if settings["search"] == "random":
-        done = {trial["name"] for trial in started_trials(settings) if trial["finished"]}
+        done = {trial["name"] for trial in started if trial["finished"]}
         todo = [trial for trial in settings["trials"] if trial["name"] not in done]
         return [(todo, 0)] if todo else []
-    started = started_trials(settings)
     relaunch = [{key: trial[key] for key in ("name", "seed", "space")} for trial in started if not trial["finished"]]
     configurations = len({repr(sorted(trial["space"].items())) for trial in started})
     remaining = settings["samples"] - configurations

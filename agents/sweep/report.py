@@ -106,14 +106,21 @@ def error_line(error: BaseException | None) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
-def started_trials(settings: dict) -> list[dict]:
+def started_trials(settings: dict, strict: bool = False) -> list[dict]:
     """The trials that have a run directory: {"name", "seed", "space", "finished", "run_dir"}, from
-    their trial.json (checked against the sweep's space) and whether their result.json is whole."""
+    their trial.json (checked against the sweep's space and its sweep_id) and whether their
+    result.json is whole and this sweep's. `strict`: a run directory of another sweep (its records
+    copied in) is a SweepConfigError, not left out."""
     runs = Path(settings["experiment_path"]) / RUNS_DIR
     found = []
     for run_dir in sorted(runs.iterdir()) if runs.is_dir() else []:
         record = _read_json(run_dir / TRIAL_FILE, TRIAL_RECORD)
         if record is None:
+            continue
+        if record.get("sweep_id") != settings["sweep_id"]:
+            if strict:
+                raise SweepConfigError(f"--resume: {str(run_dir)!r} holds another sweep's trial (its trial.json names "
+                                       "another sweep_id); remove it")
             continue
         trial = {"name": record["trial_id"], "seed": record["seed"], "space": record["space"]}
         try:
@@ -122,8 +129,9 @@ def started_trials(settings: dict) -> list[dict]:
             continue  # not a trial this sweep gives: never relaunched
         if run_dir.name != run_dir_name(trial["name"], trial["seed"]):
             continue
-        finished = _read_json(run_dir / RESULT_FILE, TRIAL_RESULT) is not None
-        found.append({**trial, "finished": finished, "run_dir": run_dir})
+        result = _read_json(run_dir / RESULT_FILE, TRIAL_RESULT)
+        found.append({**trial, "finished": result is not None and result.get("sweep_id") == settings["sweep_id"],
+                      "run_dir": run_dir})
     return found
 
 
@@ -171,6 +179,10 @@ def collect(settings: dict, errors: dict[str, str]) -> list[TrialRecord]:
         run_dir = experiment / RUNS_DIR / (run_dir_name(name, seed) if seed is not None else name)
         final = _read_json(run_dir / RESULT_FILE, TRIAL_RESULT) if seed is not None else None
         record = _read_json(run_dir / TRIAL_FILE, TRIAL_RECORD) if seed is not None else None
+        if final is not None and final.get("sweep_id") != settings["sweep_id"]:
+            final = None  # another sweep's result: not this trial's
+        if record is not None and record.get("sweep_id") != settings["sweep_id"]:
+            record = None
         if final is not None:
             status = COMPLETE
         elif name in errors:

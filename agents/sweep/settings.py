@@ -5,6 +5,7 @@ every number. A resumed sweep writes only where its command line says (`resumed_
 from __future__ import annotations
 
 import argparse
+import re
 import secrets
 from datetime import datetime, timezone
 from pathlib import Path
@@ -99,6 +100,9 @@ def new_settings(args: argparse.Namespace) -> dict:
         # record, never from Ray Tune's pickled state (an Optuna sweep's trials are recorded as they
         # start, in their run directories).
         "plan_seed": plan_seed,
+        # Ties the trials' records to this sweep: a run directory copied from another sweep is not one
+        # of its trials (--resume refuses it).
+        "sweep_id": secrets.token_hex(8),
         "trials": plan_trials(sweep, plan_seed) if sweep["search"] == "random" else [],
     })
 
@@ -188,6 +192,8 @@ def check_settings(settings: dict) -> dict:
 def _check_plan(settings: dict) -> None:
     """The planned trials: a random/grid sweep's every trial in order (`plan_trials`), each one its
     space can give; none for an Optuna sweep."""
+    if not (isinstance(settings.get("sweep_id"), str) and re.fullmatch(r"[0-9a-f]{16}", settings["sweep_id"])):
+        raise SweepConfigError(f"sweep_id must be 16 hexadecimal digits, got {config_check.shown(settings.get('sweep_id'))}")
     plan_seed, trials = settings.get("plan_seed"), settings.get("trials")
     if not config_check.Integer(0, 2**31 - 1).accepts(plan_seed):
         raise SweepConfigError(f"plan_seed must be an integer in 0..{2**31 - 1}, got {config_check.shown(plan_seed)}")

@@ -42,10 +42,10 @@ def run_dir_name(trial_id: str, seed: int) -> str:
 # What a trial records: trial.json as it goes (its draw, so an Optuna trial can be relaunched from it),
 # result.json when it has finished. Checked when read back (bh8 sweep --resume, the report).
 TRIAL_RECORD = Schema("trial record", required={"trial_id": Text(64), "seed": Int(0, MAX_SEED), "space": Table()},
-                      optional={"attempts": Int(0, 10**6), "wall_seconds": Real(0.0, 1e10),
+                      optional={"sweep_id": Text(64), "attempts": Int(0, 10**6), "wall_seconds": Real(0.0, 1e10),
                                 "starts": ListOf(Int(0, MAX_TIMESTEPS), 10**6)})
 TRIAL_RESULT = Schema("trial result", required={"metrics": Table(), "num_timesteps": Int(0, MAX_TIMESTEPS)},
-                      optional={"wall_seconds": Real(0.0, 1e10), "attempts": Int(0, 10**6)})
+                      optional={"sweep_id": Text(64), "wall_seconds": Real(0.0, 1e10), "attempts": Int(0, 10**6)})
 METRICS = Schema("trial metrics", required={METRIC: Real(0.0, 1.0), "best_mean_return": Real(-1e15, 1e15)},
                  optional={"best_timesteps": Int(0, MAX_TIMESTEPS)})
 
@@ -121,15 +121,16 @@ def run_trial(params: dict, settings: dict) -> None:
     run_dir = Path(settings["experiment_path"]) / RUNS_DIR / run_dir_name(trial_id, seed)
     run_dir.mkdir(parents=True, exist_ok=True)
     result_path = run_dir / RESULT_FILE
-    if result_path.exists():  # finished before Tune heard of it (a kill in between): nothing to redo
-        tune.report(METRICS.check(read_run_json(result_path, TRIAL_RESULT)["metrics"], str(result_path),
-                                  RuntimeError))
+    result = read_run_json(result_path, TRIAL_RESULT) if result_path.exists() else None
+    if result is not None and result.get("sweep_id") == settings["sweep_id"]:
+        # finished before Tune heard of it (a kill in between): nothing to redo
+        tune.report(METRICS.check(result["metrics"], str(result_path), RuntimeError))
         return
 
     record = (read_run_json(run_dir / TRIAL_FILE, TRIAL_RECORD) if (run_dir / TRIAL_FILE).exists()
               else {"attempts": 0, "wall_seconds": 0.0})
     record.update(attempts=record.get("attempts", 0) + 1, trial_id=trial_id, seed=seed, space=trial["space"],
-                  host=socket.gethostname(), pid=os.getpid())
+                  sweep_id=settings["sweep_id"], host=socket.gethostname(), pid=os.getpid())
     write_json_atomic(run_dir / TRIAL_FILE, record)
     clock = _WallClock(run_dir / TRIAL_FILE, record)
 
@@ -156,5 +157,6 @@ def run_trial(params: dict, settings: dict) -> None:
                            f"(eval.freq {config['eval'].get('freq', 10_000)})")
     metrics = _metrics(state)
     write_json_atomic(result_path, {"metrics": metrics, "num_timesteps": int(state["num_timesteps"]),
-                                    "wall_seconds": record["wall_seconds"], "attempts": record["attempts"]})
+                                    "wall_seconds": record["wall_seconds"], "attempts": record["attempts"],
+                                    "sweep_id": settings["sweep_id"]})
     tune.report(metrics)
