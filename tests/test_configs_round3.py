@@ -41,6 +41,15 @@ def test_a_batch_larger_than_the_rollout_is_refused():
     check_rollout(config, 4)  # 32 x 4 = 128: fits
 
 
+def test_a_hold_of_1e7_seconds_in_a_config_is_refused_when_the_config_is_checked():
+    """Finding 4: `arm.hold_seconds` 1e7 in a config made LoopInterface.episode_steps loop (about 10^9
+    cycles). The arm's schedule is bounded: the env the config builds refuses it, naming the key."""
+    config = _base("PPO", GRASP)
+    config["env_kwargs"] = {"arm": {"hold_seconds": 1e7}}
+    with pytest.raises(ConfigError, match=r"env_kwargs: .*hold_seconds must be a number in \[0, 60\]"):
+        check_env_tables(config)
+
+
 def test_a_history_in_training_but_not_in_evaluation_is_refused_before_any_rollout():
     """Finding 10: a `history` differing between env_kwargs and eval_env_kwargs failed only at the
     first evaluation, after a rollout; the two envs' spaces are compared when the config is checked."""
