@@ -61,10 +61,12 @@ def workers(session: int) -> list[int]:
     """The session's workers: the fork server's children (or the command's, under spawn), not
     multiprocessing's own helpers (the fork server, the resource tracker)."""
     processes = session_processes(session)
+    command = processes.get(session, (0, ""))[1]
     helpers = {pid for pid, (parent, line) in processes.items()
                if parent == session and ("forkserver" in line or "resource_tracker" in line)}
-    return [pid for pid, (parent, _) in processes.items()
-            if pid != session and pid not in helpers and (parent in helpers or parent == session)]
+    # a child forked a moment ago still shows the command's own line until it execs: not yet known
+    return [pid for pid, (parent, line) in processes.items()
+            if pid != session and pid not in helpers and line != command and (parent in helpers or parent == session)]
 
 
 def one_round(command: list[str], folder: Path, rng: random.Random) -> dict:
