@@ -55,6 +55,8 @@ def _readers(tmp_path):
 def test_every_user_file_is_refused_unless_a_regular_file_within_its_limit(tmp_path, kind):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     for name, read in _readers(tmp_path).items():
+        if kind == "sparse 2 GB" and name in ("policy.npz", "policy.zip", "latest.zip"):
+            continue  # limits of 256 MB: reading that much proves nothing /dev/zero does not
         folder = tmp_path / name.replace(".", "_")
         folder.mkdir()
         path = folder / name

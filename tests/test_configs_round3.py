@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 
 import pytest
@@ -136,14 +137,17 @@ def test_a_sweep_folder_1100_levels_deep_is_not_a_recursion_error(tmp_path):
     from test_sweep_hostile import _new_sweep_json, _resume_args
 
     folder = _new_sweep_json(tmp_path)
-    levels = [folder / "ray"]
-    for _ in range(1100):
-        levels[-1].mkdir()
-        levels.append(levels[-1] / "d")
+    (folder / "ray").mkdir()
+    descriptors = [os.open(folder / "ray", os.O_RDONLY)]
     try:
+        for _ in range(1100):  # each made relative to the one above: no path walked 1100 deep
+            os.mkdir("d", dir_fd=descriptors[-1])
+            descriptors.append(os.open("d", os.O_RDONLY, dir_fd=descriptors[-1]))
         settings = resumed_settings(_resume_args(folder))
         check_folders(settings)
         assert started_trials(settings) == []
     finally:
-        for level in reversed(levels[:-1]):  # deepest first: rmtree itself recurses
-            level.rmdir()
+        for parent in reversed(descriptors[:-1]):  # deepest first: rmtree itself recurses
+            os.rmdir("d", dir_fd=parent)
+        for descriptor in descriptors:
+            os.close(descriptor)
