@@ -26,6 +26,7 @@ from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import EpisodeResult
 from bh8_gym.child_processes import WorkerDied
+from bh8_gym.safe_files import read_json_bounded
 from bh8_gym.agents.evaluation.eval_worker import (
     BATCH_ENVS,
     EvaluationWorker,
@@ -150,6 +151,9 @@ def paired_line(label: str, paired: dict[str, Any]) -> str:
             f"exact McNemar p = {paired['mcnemar_p']:.3g}")
 
 
+COMPARISON_LIMIT_BYTES = 256 << 20  # another report's results.json: a record per episode
+
+
 def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str, list[dict]]:
     """(its path, its episodes) of another `bh8 eval --out` report (a directory or results.json),
     checked before any episode runs to cover the same episodes: same first seed, same count."""
@@ -157,9 +161,11 @@ def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str,
     if path.is_dir():
         path = path / "results.json"
     try:
-        report = json.loads(path.read_text())
+        report = read_json_bounded(path, COMPARISON_LIMIT_BYTES, "report")
         episodes = report["episodes"]
-    except (OSError, ValueError, KeyError) as exc:
+        if not isinstance(episodes, list) or not all(isinstance(e, dict) for e in episodes):
+            raise ValueError("its episodes are not a list of records")
+    except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"--compare {str(path)!r}: not a bh8 eval report ({exc})") from None
     if report.get("seed") != seed or len(episodes) != n_episodes:
         raise ValueError(f"--compare {str(path)!r}: {len(episodes)} episodes from seed {report.get('seed')}, "
