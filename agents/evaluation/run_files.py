@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -49,14 +50,17 @@ def append_evaluation(out_dir: Path, row: dict) -> None:
     path = Path(out_dir) / EVALUATIONS_FILE
     text = io.StringIO(newline="")
     writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
-    size = path.stat().st_size if path.exists() else 0
-    if size == 0:
+    last = b""
+    if os.path.lexists(path):
+        with open_regular(path, EVALUATIONS_FILE) as handle:  # a FIFO planted there is refused
+            size = os.fstat(handle.fileno()).st_size
+            if size:
+                handle.seek(size - 1)
+                last = handle.read(1)
+    if not last:
         writer.writeheader()
-    else:
-        with path.open("rb") as handle:
-            handle.seek(size - 1)
-            if handle.read(1) != b"\n":
-                text.write("\r\n")  # the csv module's line break
+    elif last != b"\n":
+        text.write("\r\n")  # the csv module's line break
     writer.writerow(row)
     with path.open("a", newline="") as handle:
         handle.write(text.getvalue())
