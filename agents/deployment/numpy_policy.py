@@ -46,18 +46,7 @@ class NumpyPolicy:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        try:
-            if self.path.is_file() and not zipfile.is_zipfile(self.path):  # np.load would try to unpickle it
-                raise PolicyFileError(f"{str(self.path)!r} is not an .npz file (truncated, or something else); "
-                                      "export the policy again")
-            with zipfile.ZipFile(self.path) as archive:
-                _check_npz_members(archive, self.path)
-            with np.load(self.path, allow_pickle=False) as data:
-                arrays = {name: data[name] for name in data.files}
-        except PolicyFileError:
-            raise
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
-            raise PolicyFileError(f"cannot read policy file {str(self.path)!r}: {exc}") from exc
+        arrays = read_npz(self.path)
         if "format" not in arrays or str(arrays["format"]) != FORMAT:
             raise PolicyFileError(f"{str(self.path)!r} is not a {FORMAT} file")
         try:
@@ -155,6 +144,23 @@ class NumpyPolicy:
             action = np.clip(x, self.action_low, self.action_high)
         action = action.astype(np.float32)
         return (action[0] if single else action), None
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the policy file at `path`, read with nothing unpickled and nothing allocated
+    that the file does not hold (`_check_npz_members`); PolicyFileError for anything else."""
+    try:
+        if path.is_file() and not zipfile.is_zipfile(path):  # np.load would try to unpickle it
+            raise PolicyFileError(f"{str(path)!r} is not an .npz file (truncated, or something else); "
+                                  "export the policy again")
+        with zipfile.ZipFile(path) as archive:
+            _check_npz_members(archive, path)
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except PolicyFileError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
+        raise PolicyFileError(f"cannot read policy file {str(path)!r}: {exc}") from exc
 
 
 def _check_npz_members(archive: zipfile.ZipFile, path: Path) -> None:

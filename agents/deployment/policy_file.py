@@ -1,5 +1,5 @@
 """A policy file, read and checked before anything depends on it: `load_policy` (an exported .npz,
-`numpy_policy`, or an SB3 .zip, `sb3_file`), `check_policy_runs` (a forward pass on test
+`numpy_policy`; a grasp-choice .npz, `agents/choice/policy.py`; or an SB3 .zip, `sb3_file`), `check_policy_runs` (a forward pass on test
 observations) and the commands' `--trust-file`.
 
 This module imports numpy at import time; torch and SB3 only when an SB3 file is loaded.
@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+from bh8_gym.agents.choice.policy import FORMAT as CHOICE_FORMAT
+from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy, read_npz
 from bh8_gym.agents.deployment.policy_io import PolicyFileError
 from bh8_gym.agents.deployment.sb3_file import SB3Policy
 
@@ -57,7 +58,28 @@ def load_policy(path: str | os.PathLike, trust: bool = False):
     if not path.exists():
         raise FileNotFoundError(f"policy file {str(path)!r} does not exist")
     if path.suffix == ".npz":
+        arrays = read_npz(path)
+        if str(arrays.get("format", "")) == CHOICE_FORMAT:
+            return load_choice_policy(path, arrays)
         return NumpyPolicy(path)
     if path.suffix == ".zip":
         return SB3Policy(path, trust=trust)
     raise PolicyFileError(f"policy file {str(path)!r}: expected an exported .npz or an SB3 .zip")
+
+
+def load_choice_policy(path: Path, arrays: dict):
+    """A grasp-choice policy file (`agents/choice/policy.py`): its settings, selector and predictor,
+    each checked (names of known grasps, ranges, layers that chain, finite numbers)."""
+    from bh8_gym.agents.choice.policy import GraspChoicePolicy
+
+    try:
+        policy = GraspChoicePolicy.from_arrays(arrays, where=repr(str(path)))
+    except PolicyFileError:
+        raise
+    except (KeyError, ValueError, TypeError) as exc:  # json's errors are ValueErrors
+        raise PolicyFileError(f"{str(path)!r} is not a usable grasp-choice file ({type(exc).__name__}: {exc}); "
+                              "train it again") from None
+    except RecursionError:
+        raise PolicyFileError(f"{str(path)!r} is damaged: its metadata is nested too deep") from None
+    policy.path = path
+    return policy

@@ -102,6 +102,8 @@ class PolicyFileJob:
 
             self._policy = load_policy(self.path, trust=self.trust)
             one_torch_thread()
+        if getattr(self._policy, "needs_feedback", False):  # the grasp choice: acts on feedback blocks, like a script
+            return run_episodes(None, envs[0], n_episodes, seed=seed, baseline=self._policy, **kwargs)
         return run_episodes(self._policy, envs, n_episodes, seed=seed, **kwargs)
 
 

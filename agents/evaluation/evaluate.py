@@ -235,6 +235,8 @@ def record_gif(policy, env_id: str, env_kwargs: dict, path: Path, episodes: int,
     frames = []
     try:
         baseline = make_grasp(script, env) if script is not None else None
+        if getattr(policy, "needs_feedback", False):  # the grasp choice acts like a script
+            baseline = policy
         base = env.unwrapped
         if every is None:
             every = steps_per_frame(base.cycle_seconds)

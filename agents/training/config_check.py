@@ -25,7 +25,7 @@ from typing import Any
 
 from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
 
-ALGORITHMS = ("PPO", "SAC")
+ALGORITHMS = ("PPO", "SAC", "GraspChoice")  # GraspChoice: agents/choice/, no SB3 model
 # torch.nn class of each `activation` name in [policy_kwargs]
 ACTIVATION_CLASSES = {"tanh": "Tanh", "relu": "ReLU", "elu": "ELU", "leaky_relu": "LeakyReLU", "silu": "SiLU"}
 MAX_DEPTH = 16  # tables and lists inside each other (TOML's dotted headers can nest thousands deep)
@@ -275,7 +275,10 @@ _COMMON_POLICY_KEYS = {
     "features_extractor_class": Unsupported(OBJECT_ONLY),
     "features_extractor_kwargs": Unsupported(OBJECT_ONLY),
 }
+HYPERPARAMETERS["GraspChoice"] = {}  # its settings are the [choice] table's
+
 POLICY_KWARGS = {
+    "GraspChoice": {},
     "PPO": {**_COMMON_POLICY_KEYS, "net_arch": Layers(("pi", "vf")), "ortho_init": Flag(), "full_std": Flag(),
             "squash_output": Flag(), "host_observations": Unsupported("bh8 train sets it for asymmetric_critic")},
     "SAC": {**_COMMON_POLICY_KEYS, "net_arch": Layers(("pi", "qf")), "clip_mean": Real(0, 100, low_open=True),
@@ -299,6 +302,15 @@ PRETRAIN_KEYS = {
     "dagger_iterations": Integer(1, 20),
     "dagger_beta": FRACTION,
 }
+# The grasp choice's training (agents/choice/trainer.py); its settings are ChoiceSettings' fields,
+# checked by building them (`_check_choice`).
+CHOICE_KEYS = {
+    "contexts": Integer(2, 10**6),
+    "settings": Table({name: Either((Real(-1e9, 1e9), Text(), ListOf(Text(), 1, 64)))
+                       for name in ("probe", "grasps", "decision_seconds", "retries", "check_seconds",
+                                    "retry_threshold", "reopen_fraction", "reopen_velocity")}),
+    "models": ListOf(Table({"hidden": ListOf(Integer(1, 4096), 1, 8), "weight_decay": Real(0, 10)}), 1, 16),
+}
 # Env keywords taken as plain values. Others (the nested settings tables, the LOOP options) are the
 # env's to check when it is built; the names are the env constructor's (`env_parameters`).
 ENV_KEYWORDS = {
@@ -314,7 +326,7 @@ ENV_KEYWORDS = {
     "render_size": ListOf(Integer(1, 4096), 2, 2),
 }
 TOP_LEVEL = {"algorithm": Text(ALGORITHMS), "env_id": Text(), "asymmetric_critic": Flag()}
-KNOWN_TABLES = (*TABLES, "pretrain", "sweep")
+KNOWN_TABLES = (*TABLES, "pretrain", "sweep", "choice")
 
 
 # -- checking ------------------------------------------------------------------------------
@@ -409,6 +421,25 @@ def check_config(config: Any) -> None:
     _check_rules(config)
     if "pretrain" in config:
         _check_pretrain(config)
+    if "choice" in config or algorithm == "GraspChoice":
+        _check_choice(config)
+
+
+def _check_choice(config: dict) -> None:
+    if config["algorithm"] != "GraspChoice" or "choice" not in config:
+        raise ConfigError("config: the [choice] table and algorithm = \"GraspChoice\" go together")
+    if not config["env_id"].startswith("BH8Grasp"):
+        raise ConfigError(f"config: the grasp choice grasps: it needs BH8Grasp-v0, not {config['env_id']}")
+    for table in ("hyperparameters", "policy_kwargs", "pretrain"):
+        if config.get(table):
+            raise ConfigError(f"config: [{table}] is for SB3's algorithms; the grasp choice takes [choice]")
+    _check_table(config, "choice", CHOICE_KEYS, "")
+    from bh8_gym.agents.choice.policy import ChoiceSettings
+
+    try:
+        ChoiceSettings(**config["choice"].get("settings", {}))
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"[choice.settings] {error}") from None
 
 
 def _check_env_id(env_id: str) -> None:

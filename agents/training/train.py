@@ -26,6 +26,7 @@ from bh8_gym.agents.training.config_check import (
     MAX_CONFIG_BYTES,
     MAX_ENVS,
     MAX_TIMESTEPS,
+    check_config,
     check_plain,
     check_run_metadata,
 )
@@ -35,8 +36,15 @@ from bh8_gym.cli import integer_argument
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 
 
+def default_algorithm(env_id: str) -> str:
+    """`bh8 train`'s algorithm when none is given: the grasp choice for the grasp env, PPO otherwise."""
+    return "GraspChoice" if env_id == "BH8Grasp-v0" else "PPO"
+
+
 def default_config_path(algorithm: str, env_id: str) -> Path:
-    """agents/configs/{ppo,sac}_{grasp,reach}.toml for the algorithm and environment."""
+    """agents/configs/{ppo,sac,graspchoice}_{grasp,reach}.toml for the algorithm and environment."""
+    if algorithm == "GraspChoice" and env_id != "BH8Grasp-v0":
+        raise ValueError(f"the grasp choice is for BH8Grasp-v0, not {env_id!r}")
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if env_id not in ENV_CONFIG_NAMES:
@@ -139,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
             _check_resume_arguments(args, run_metadata)
             config, seed = run_metadata["config"], run_metadata["seed"]
         else:
-            config_path = args.config or default_config_path(args.algo or "PPO", args.env or "BH8Grasp-v0")
+            env_id = args.env or "BH8Grasp-v0"
+            config_path = args.config or default_config_path(args.algo or default_algorithm(env_id), env_id)
             config = load_config(config_path)
             if args.algo and config["algorithm"] != args.algo:
                 raise TrainingError(f"--algo {args.algo} contradicts {str(config_path)!r} (algorithm = "
@@ -147,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
             if args.env and args.env != config["env_id"]:
                 raise TrainingError(f"--env {args.env} contradicts {str(config_path)!r} (env_id = {config['env_id']!r})")
             seed = 0 if args.seed is None else args.seed
+        if config["algorithm"] == "GraspChoice":
+            return _run_choice(args, config, seed, console_line)
         trainer = Trainer(config, args.out, n_envs=args.n_envs, seed=seed,
                           progress=not args.no_progress, verbose=args.verbose, log=console_line,
                           trust=args.trust_file)
@@ -167,4 +178,24 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"trained to {state['num_timesteps']} steps; best validation success rate {percent(state['best_success_rate'])} "
               f"(step {state['best_timesteps']}, {args.out / BEST_MODEL_FILE}); outputs in {args.out}")
+    return 0
+
+
+def _run_choice(args: argparse.Namespace, config: dict, seed: int, log) -> int:
+    """`bh8 train` of the grasp choice (agents/choice/trainer.py): labels, selector, validation."""
+    from bh8_gym.agents.choice.trainer import POLICY_FILE, ChoiceTrainer
+    from bh8_gym.agents.deployment.policy_io import atomic_write
+    from bh8_gym.agents.evaluation.evaluate import percent
+
+    if args.timesteps is not None:
+        raise TrainingError("--timesteps is for SB3's algorithms; the grasp choice's size is [choice] contexts")
+    check_config(config)
+    args.out.mkdir(parents=True, exist_ok=True)
+    run_json = json.dumps({"config": config, "seed": seed, "algorithm": "GraspChoice"}, indent=2)
+    atomic_write(args.out / RUN_METADATA_FILE, lambda handle: handle.write(run_json.encode()))
+    report = ChoiceTrainer(config, args.out, seed=seed, processes=args.n_envs, progress=not args.no_progress,
+                           log=log).run()
+    kept = report["validation"]["models"][report["validation"]["kept"]]
+    print(f"trained the grasp choice in {report['seconds']:.0f} s; validation success rate {percent(kept)} against "
+          f"{percent(report['validation']['probe'])} for its probe's grasp alone; policy {args.out / POLICY_FILE}")
     return 0
