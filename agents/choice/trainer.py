@@ -94,7 +94,7 @@ class ChoiceTrainer:
 
     def labels(self) -> Labels:
         """The run's labels: read back when labels.npz holds this run's, else collected and saved."""
-        from bh8_gym.agents.deployment.policy_io import atomic_write_npz
+        from bh8_gym.agents.policy_io import atomic_write_npz
 
         path, key = self.out / LABELS_FILE, self._labels_key()
         if path.is_file():
@@ -161,7 +161,7 @@ class ChoiceTrainer:
                   "validation": {"episodes": len(seeds), "seed": self.validation_seed, "probe": rates[0],
                                  "models": rates[1:], "kept": best},
                   "seconds": time.monotonic() - started}
-        from bh8_gym.agents.deployment.policy_io import atomic_write
+        from bh8_gym.agents.policy_io import atomic_write
 
         atomic_write(self.out / REPORT_FILE, lambda h: h.write(json.dumps(report, indent=2, default=list).encode()))
         return report

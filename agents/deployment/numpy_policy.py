@@ -23,7 +23,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import MAX_LAYERS, POLICY_FILE_LIMIT_BYTES, PolicyFileError, atomic_write_npz
+from bh8_gym.agents.policy_io import MAX_LAYERS, POLICY_FILE_LIMIT_BYTES, PolicyFileError, atomic_write_npz
 
 FORMAT = "bh8-numpy-policy/1"
 NPZ_MEMBER_LIMIT = 2 * MAX_LAYERS + 16  # an export's arrays: two per layer and eight others
