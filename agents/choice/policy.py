@@ -44,8 +44,8 @@ class ChoiceSettings:
     """What the choice does and when (module docstring); checked on construction."""
 
     probe: str = "loop-v70"
-    grasps: tuple[str, ...] = ("loop-v70", "squeeze", "hold", "squeeze-t180")
-    decision_seconds: float = 0.6  # host clock from the episode's (or a retry's) first block
+    grasps: tuple[str, ...] = ("loop-v70", "squeeze", "squeeze-t225", "loop")
+    decision_seconds: float = 0.65  # host clock from the episode's (or a retry's) first block
     retries: int = 0
     check_seconds: float = 0.75  # host clock from the attempt's first block
     retry_threshold: float = 0.3
@@ -189,7 +189,8 @@ class GraspChoicePolicy:
                      else self.probe.act(observation, info))
             if attempt_elapsed < self.settings.decision_seconds:
                 return probe
-            scores = self.selector(self.decision_features())
+            self.decided_features = self.decision_features()
+            scores = self.selector(self.decided_features)
             self.chosen = int(np.argmax(scores))
             self.phase = "grasp"
             self.decisions.append({"at": self.elapsed, "grasp": self.settings.grasps[self.chosen],
@@ -251,7 +252,7 @@ class GraspChoicePolicy:
                                                  if k not in ("settings", "selector_layers", "predictor_layers")})
 
     def save(self, path) -> Path:
-        from bh8_gym.agents.policy_io import atomic_write_npz
+        from bh8_gym.atomic_files import atomic_write_npz
 
         path = Path(path)
         atomic_write_npz(path, self.arrays())

@@ -25,6 +25,7 @@ from bh8_gym.agents.choice.labels import Labels, collect_labels
 from bh8_gym.agents.choice.model import SuccessModel
 from bh8_gym.agents.choice.policy import ChoiceSettings, GraspChoicePolicy
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.grasps import run_script
 
 POLICY_FILE = "grasp_choice.npz"
 LABELS_FILE = "labels.npz"
@@ -38,19 +39,10 @@ def run_episodes(env_id: str, env_kwargs: dict, policy_arrays: dict, seeds: list
     """Each seed's episode with the policy file's arrays (built afresh in this process): held or not."""
     env = make_env(env_id, env_kwargs)
     policy = GraspChoicePolicy.from_arrays(policy_arrays)
-    held = []
     try:
-        for seed in seeds:
-            obs, info = env.reset(seed=seed)
-            policy.reset(env)
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-                done = terminated or truncated
-            held.append(bool(info["is_success"]))
+        return [run_script(env, policy, seed) for seed in seeds]
     finally:
         env.close()
-    return held
 
 
 def validate(env_id: str, env_kwargs: dict, policies: list[dict], seeds: list[int], processes: int) -> list[list[bool]]:
@@ -83,6 +75,7 @@ class ChoiceTrainer:
         self.validation_episodes = int(config["eval"].get("episodes", 200))
         self.validation_seed = int(config["eval"].get("seed", 10_000))
         self.models = [dict(m) for m in table.get("models", [{}])]
+        self.rl_episodes = int(table.get("rl_episodes", 0))
         self.env_id = config["env_id"]
         self.env_kwargs = dict(config.get("env_kwargs", {}))
         self.eval_env_kwargs = {**self.env_kwargs, **config.get("eval_env_kwargs", {})}
@@ -94,7 +87,7 @@ class ChoiceTrainer:
 
     def labels(self) -> Labels:
         """The run's labels: read back when labels.npz holds this run's, else collected and saved."""
-        from bh8_gym.agents.policy_io import atomic_write_npz
+        from bh8_gym.atomic_files import atomic_write_npz
 
         path, key = self.out / LABELS_FILE, self._labels_key()
         if path.is_file():
@@ -132,6 +125,34 @@ class ChoiceTrainer:
                     "seed": self.seed, "model": {"hidden": list(hidden), "weight_decay": weight_decay}}
         return GraspChoicePolicy(self.settings, selector, predictor, metadata)
 
+    def fine_tune(self, policy: GraspChoicePolicy, n_features: int, rate: float, seeds: list[int]):
+        """RL over the discrete choice: PPO on `DecisionEnv` from the selector, `rl_episodes` decisions
+        on the training objects; the fine-tuned actor is kept only if it does better on validation."""
+        from stable_baselines3.common.env_util import make_vec_env
+        from stable_baselines3.common.vec_env import SubprocVecEnv
+
+        from bh8_gym.agents.choice.decision_env import DecisionEnv, selector_of, warm_started_ppo
+
+        kwargs = {"env_kwargs": self.env_kwargs, "settings": self.settings}
+        envs = make_vec_env(DecisionEnv, n_envs=self.processes, seed=self.seed, env_kwargs=kwargs,
+                            vec_env_cls=SubprocVecEnv if self.processes > 1 else None,
+                            vec_env_kwargs={"start_method": "forkserver"} if self.processes > 1 else None)
+        try:
+            model = warm_started_ppo(policy.selector, envs, seed=self.seed, n_steps=max(8, 128 // self.processes),
+                                     batch_size=64, n_epochs=4, learning_rate=1e-4, ent_coef=0.0)
+            model.learn(self.rl_episodes)
+        finally:
+            envs.close()
+        tuned = GraspChoicePolicy(self.settings, selector_of(model, n_features), policy.predictor,
+                                  {**policy.metadata, "rl_episodes": self.rl_episodes})
+        tuned_rate = float(np.mean(validate(self.env_id, self.eval_env_kwargs, [tuned.arrays()], seeds,
+                                            self.processes)[0]))
+        keep = tuned_rate > rate
+        self.log(f"RL over the choice ({self.rl_episodes} decisions of PPO from the selector): validation "
+                 f"{tuned_rate * 100:.1f} % against {rate * 100:.1f} % before" + (" <- kept" if keep else " (not kept)"))
+        return (tuned if keep else policy), {"episodes": self.rl_episodes, "rate": tuned_rate, "before": rate,
+                                             "kept": keep, "kept_rate": max(tuned_rate, rate)}
+
     def run(self) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
@@ -154,14 +175,20 @@ class ChoiceTrainer:
                      f"(the probe's grasp {self.settings.probe} alone {rates[0] * 100:.1f} %)"
                      + (" <- kept" if index == best else ""))
         chosen = candidates[best]
-        chosen.metadata["validation"] = {"success_rate": rates[best + 1], "probe_success_rate": rates[0],
+        rl = None
+        if self.rl_episodes:
+            chosen, rl = self.fine_tune(chosen, labels.features.shape[1], rates[best + 1], seeds)
+            best_rate = rl["kept_rate"]
+        else:
+            best_rate = rates[best + 1]
+        chosen.metadata["validation"] = {"success_rate": best_rate, "probe_success_rate": rates[0],
                                          "episodes": len(seeds), "seed": self.validation_seed}
         chosen.save(self.out / POLICY_FILE)
         report = {"labels": summary, "settings": self.settings.__dict__, "models": self.models,
                   "validation": {"episodes": len(seeds), "seed": self.validation_seed, "probe": rates[0],
-                                 "models": rates[1:], "kept": best},
+                                 "models": rates[1:], "kept": best, "rl": rl},
                   "seconds": time.monotonic() - started}
-        from bh8_gym.agents.policy_io import atomic_write
+        from bh8_gym.atomic_files import atomic_write
 
         atomic_write(self.out / REPORT_FILE, lambda h: h.write(json.dumps(report, indent=2, default=list).encode()))
         return report

@@ -132,6 +132,9 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     if policy.privileged or interface.privileged:
         raise DeployError("this policy was trained with privileged (simulation-only) observations; "
                           "a real hand cannot provide them - retrain with privileged=False")
+    if getattr(policy, "needs_feedback", False):
+        check_feedback_policy(policy, interface)
+        return
     host_size = interface.host_observation_size
     if policy.observation_dim != host_size:
         raise DeployError(f"the policy expects {policy.observation_dim} observations but a host builds "
@@ -143,6 +146,25 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     first = interface.observation_from_feedback([0] * len(interface.layout.feedback_fields), [0] * len(fields), 0.0,
                                               interface.new_history())
     check_policy_runs(policy, [first, np.zeros(host_size, dtype=np.float32)], interface.action_space.shape)
+
+
+def check_feedback_policy(policy, interface: LoopInterface) -> None:
+    """A policy that acts on the feedback blocks themselves (the grasp choice): it must be able to run
+    on this env's blocks (bound to the interface) and give a finite action of the control block's
+    size for a block of zeros, all before the port is opened."""
+    fields = interface.layout.feedback_fields
+    try:
+        policy.bind(interface)
+        zeros = interface.layout.encode_feedback([0] * len(fields))
+        first = interface.observation_from_feedback([0] * len(fields), [0] * len(interface.layout.control_fields), 0.0,
+                                                    interface.new_history())
+        action = np.asarray(policy.act(first, {"feedback_block": zeros}), dtype=np.float64)
+        policy.reset()
+    except (ValueError, KeyError, TypeError) as error:
+        raise DeployError(f"the policy cannot run on this env's blocks: {error}") from None
+    if action.shape != interface.action_space.shape or not np.all(np.isfinite(action)):
+        raise PolicyFileError(f"the policy's test action {action.tolist()} is not {interface.action_space.shape[0]} "
+                              "finite numbers")
 
 
 class Deployment:
@@ -267,10 +289,16 @@ class Deployment:
                 elapsed = (base.next_elapsed(0.0, len(hand.last_control_block), processing_time) if on_cycles
                            else time.monotonic() - start)
                 observation = base.observation_from_feedback(feedback.values, previous, elapsed, history)
+                on_blocks = getattr(self.policy, "needs_feedback", False)  # acts on the blocks themselves
+                if on_blocks:
+                    self.policy.reset()
                 while self.policy_cycles < cycles and self._stop_request is None:
                     self._stop_on_strain_or_temperature(feedback)
                     try:
-                        unit, _ = self.policy.predict(observation, deterministic=True)
+                        if on_blocks:
+                            unit = self.policy.act(observation, {"feedback_block": hand.last_feedback_block})
+                        else:
+                            unit, _ = self.policy.predict(observation, deterministic=True)
                     except Exception as error:  # the hand still gets the stop block, ^C and exit action
                         raise PolicyFailure(f"{type(error).__name__}: {error}") from error
                     if not np.all(np.isfinite(unit)):

@@ -306,6 +306,7 @@ PRETRAIN_KEYS = {
 # checked by building them (`_check_choice`).
 CHOICE_KEYS = {
     "contexts": Integer(2, 10**6),
+    "rl_episodes": Integer(0, 10**7),
     "settings": Table({name: Either((Real(-1e9, 1e9), Text(), ListOf(Text(), 1, 64)))
                        for name in ("probe", "grasps", "decision_seconds", "retries", "check_seconds",
                                     "retry_threshold", "reopen_fraction", "reopen_velocity")}),

@@ -34,7 +34,6 @@ info["safety_stop"] naming the reading, plus the task's `safety_stop_reward`.
 """
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -297,7 +296,7 @@ class BH8LoopEnv(gym.Env):
         host = {
             "prev_action": list(self._prev_action), "elapsed": self._elapsed, "processing_time": self._processing_time,
             "cycles": self._cycles, "last_values": self._last_values, "feedback_block": self._feedback_block,
-            "history": copy.deepcopy(self._history),
+            "history": None if self._history is None else self._history.copy(),
             "np_random": self.np_random.bit_generator.state,
             "physics_rng": None if self._physics_rng is None else self._physics_rng.bit_generator.state,
         }
@@ -316,7 +315,7 @@ class BH8LoopEnv(gym.Env):
         self._elapsed, self._processing_time = host["elapsed"], host["processing_time"]
         self._cycles, self._last_values = host["cycles"], host["last_values"]
         self._feedback_block = host["feedback_block"]
-        self._history = copy.deepcopy(host["history"])
+        self._history = None if host["history"] is None else host["history"].copy()
         self.np_random.bit_generator.state = host["np_random"]
         if host["physics_rng"] is not None:
             self._physics_rng.bit_generator.state = host["physics_rng"]
