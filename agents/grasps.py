@@ -340,3 +340,15 @@ def make_script(name: str, env):
         raise ValueError(f"unknown script {name!r} (the family: {', '.join(FAMILY)}; continuations: "
                          f"{', '.join(CONTINUATIONS)})")
     return make_loop_script(kind, env, **settings)
+
+
+def run_script(env, script, seed: int) -> bool:
+    """One episode of `script` (anything with `reset(env)` and `act(observation, info)`: a LOOP script,
+    a grasp-choice policy) on `seed`; whether it held the object."""
+    observation, info = env.reset(seed=seed)
+    script.reset(env)
+    done = False
+    while not done:
+        observation, _, terminated, truncated, info = env.step(script.act(observation, info))
+        done = terminated or truncated
+    return bool(info.get("is_success"))

@@ -317,7 +317,7 @@ def read_one(fmt: str, path: str, client: int) -> str:
             config = load_config(path)
             check_rollout(config, 2)
         else:
-            from bh8_gym.agents.deployment.policy_io import check_metadata
+            from bh8_gym.agents.policy_io import check_metadata
             from bh8_gym.agents.sweep.trial import TRIAL_RECORD, TRIAL_RESULT
             from bh8_gym.agents.training.trainer import CHECKPOINT_STATE, read_run_json
 

@@ -44,7 +44,7 @@ import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -160,8 +160,8 @@ def parse_object_spec(text: str) -> ObjectPlacement:
     try:
         if lowered in PRIMITIVE_KINDS:
             fields.update(kind=lowered, size=_primitive_size(lowered, argument, text))
-        elif lowered.endswith(".urdf"):
-            fields.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0)
+        elif lowered.endswith(".urdf"):  # its own masses unless ;mass= is given
+            fields.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0, mass=None)
         elif lowered.endswith(tuple(MESH_SUFFIXES)):
             fields.update(kind="mesh", path=head, scale=float(argument) if argument else 1.0)
         else:
@@ -403,13 +403,12 @@ def add_object(plant: HandPlant, spec: ObjectSpec, position=(0.0, 0.0, 0.1), ori
                fixed: bool = False) -> int:
     """Place `spec` in `plant`'s world by hand (module docstring); returns its PyBullet body id.
 
-    `fixed` makes it immovable (mass 0). A URDF keeps its own masses. ObjectError for a bad pose or
-    file, before PyBullet sees it."""
+    `fixed` makes it immovable (mass 0). A URDF keeps its own masses unless `spec.mass` is given
+    (then its base gets it, as `ObjectLoader.create` does). ObjectError for a bad pose or file, before
+    PyBullet sees it."""
     position, orientation = check_pose(position, orientation)
     if spec.kind in FILE_KINDS:
         _existing_file(spec)
-    if spec.kind == "urdf":
-        spec = replace(spec, mass=None)  # placed by hand, a URDF keeps its own masses
     body = ObjectLoader(plant.client).create(spec, position, orientation, fixed=fixed)
     friction = plant.params.object_friction if spec.friction is None else spec.friction
     for link in range(-1, p.getNumJoints(body, physicsClientId=plant.client)):

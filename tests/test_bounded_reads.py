@@ -32,7 +32,7 @@ def _plant(path, kind: str) -> None:
 def _readers(tmp_path):
     """(file name, a call that reads it) for each kind of user file."""
     from bh8_gym.agents.deployment.policy_file import load_policy
-    from bh8_gym.agents.deployment.policy_io import find_run_metadata
+    from bh8_gym.agents.policy_io import find_run_metadata
     from bh8_gym.agents.evaluation.run_files import read_evaluations
     from bh8_gym.agents.training.checkpoint_file import _limited_archive
     from bh8_gym.agents.training.train import load_config

@@ -252,7 +252,7 @@ class GraspChoicePolicy:
                                                  if k not in ("settings", "selector_layers", "predictor_layers")})
 
     def save(self, path) -> Path:
-        from bh8_gym.agents.deployment.policy_io import atomic_write_npz
+        from bh8_gym.atomic_files import atomic_write_npz
 
         path = Path(path)
         atomic_write_npz(path, self.arrays())

@@ -25,6 +25,7 @@ from bh8_gym.agents.choice.labels import Labels, collect_labels
 from bh8_gym.agents.choice.model import SuccessModel
 from bh8_gym.agents.choice.policy import ChoiceSettings, GraspChoicePolicy
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.agents.grasps import run_script
 
 POLICY_FILE = "grasp_choice.npz"
 LABELS_FILE = "labels.npz"
@@ -38,19 +39,10 @@ def run_episodes(env_id: str, env_kwargs: dict, policy_arrays: dict, seeds: list
     """Each seed's episode with the policy file's arrays (built afresh in this process): held or not."""
     env = make_env(env_id, env_kwargs)
     policy = GraspChoicePolicy.from_arrays(policy_arrays)
-    held = []
     try:
-        for seed in seeds:
-            obs, info = env.reset(seed=seed)
-            policy.reset(env)
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-                done = terminated or truncated
-            held.append(bool(info["is_success"]))
+        return [run_script(env, policy, seed) for seed in seeds]
     finally:
         env.close()
-    return held
 
 
 def validate(env_id: str, env_kwargs: dict, policies: list[dict], seeds: list[int], processes: int) -> list[list[bool]]:
@@ -95,7 +87,7 @@ class ChoiceTrainer:
 
     def labels(self) -> Labels:
         """The run's labels: read back when labels.npz holds this run's, else collected and saved."""
-        from bh8_gym.agents.deployment.policy_io import atomic_write_npz
+        from bh8_gym.atomic_files import atomic_write_npz
 
         path, key = self.out / LABELS_FILE, self._labels_key()
         if path.is_file():
@@ -196,7 +188,7 @@ class ChoiceTrainer:
                   "validation": {"episodes": len(seeds), "seed": self.validation_seed, "probe": rates[0],
                                  "models": rates[1:], "kept": best, "rl": rl},
                   "seconds": time.monotonic() - started}
-        from bh8_gym.agents.deployment.policy_io import atomic_write
+        from bh8_gym.atomic_files import atomic_write
 
         atomic_write(self.out / REPORT_FILE, lambda h: h.write(json.dumps(report, indent=2, default=list).encode()))
         return report

@@ -25,7 +25,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import (
+from bh8_gym.agents.policy_io import (
     MAX_LAYERS,
     PolicyFileError,
     atomic_write_npz,

@@ -26,7 +26,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import MAX_LAYERS, PolicyFileError, find_run_metadata, read_policy_bytes
+from bh8_gym.agents.policy_io import MAX_LAYERS, PolicyFileError, find_run_metadata, read_policy_bytes
 
 SB3_DATA_LIMIT_BYTES = 16 << 20  # the `data` JSON of an SB3 .zip
 # What an SB3 .zip may make SB3 build when it is loaded (bh8-gym's networks have about 20 k

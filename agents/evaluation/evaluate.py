@@ -35,7 +35,7 @@ from bh8_gym.agents.evaluation.eval_worker import (
     one_torch_thread,
 )
 from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, load_policy
-from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.policy_io import atomic_write
 from bh8_gym.agents.evaluation.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument

@@ -12,7 +12,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.policy_io import atomic_write
 from bh8_gym.safe_files import open_regular, read_text_bounded
 
 EVALUATIONS_FILE = "evaluations.csv"

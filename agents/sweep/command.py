@@ -189,7 +189,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         ranked,
         test_evaluation,
     )
-    from bh8_gym.agents.deployment.policy_io import atomic_write
+    from bh8_gym.agents.policy_io import atomic_write
 
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,

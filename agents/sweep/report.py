@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.policy_io import atomic_write
 from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
 from bh8_gym.agents.sweep.space import SweepConfigError, check_trial, describe
 from bh8_gym.agents.sweep.trial import (

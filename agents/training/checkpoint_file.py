@@ -29,7 +29,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import POLICY_FILE_LIMIT_BYTES
+from bh8_gym.agents.policy_io import POLICY_FILE_LIMIT_BYTES
 
 from bh8_gym.agents.deployment.sb3_file import SB3_DATA_LIMIT_BYTES, ZIP_ERRORS
 from bh8_gym.safe_files import open_regular, read_bounded

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bh8_gym.agents.grasps import make_script
+from bh8_gym.agents.grasps import make_script, run_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.training.pretrain import Demonstrations, clone, discounted_returns, progress_bar
 
@@ -60,15 +60,6 @@ def choose_scripts(env, scripts: list[str], seeds, progress: bool = False) -> li
     return chosen
 
 
-def run_script(env, script, seed: int) -> bool:
-    """One episode of `script` on `seed`; whether it held the object."""
-    observation, info = env.reset(seed=seed)
-    script.reset(env)
-    done = False
-    while not done:
-        observation, _, terminated, truncated, info = env.step(script.act(observation, info))
-        done = terminated or truncated
-    return bool(info.get("is_success"))
 
 
 @dataclass

@@ -21,7 +21,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.deployment.policy_io import RUN_METADATA_FILE
+from bh8_gym.agents.policy_io import RUN_METADATA_FILE
 from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
 from bh8_gym.agents.training.config_check import (
     ALGORITHMS,
@@ -188,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_choice(args: argparse.Namespace, config: dict, seed: int, log) -> int:
     """`bh8 train` of the grasp choice (agents/choice/trainer.py): labels, selector, validation."""
     from bh8_gym.agents.choice.trainer import POLICY_FILE, ChoiceTrainer
-    from bh8_gym.agents.deployment.policy_io import atomic_write
+    from bh8_gym.agents.policy_io import atomic_write
     from bh8_gym.agents.evaluation.evaluate import percent
 
     if args.timesteps is not None:

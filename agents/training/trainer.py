@@ -53,7 +53,7 @@ from bh8_gym.agents.training.checkpoint_file import (
     save_replay_buffer,
 )
 from bh8_gym.agents.env_factory import EnvFactory
-from bh8_gym.agents.deployment.policy_io import RUN_METADATA_FILE, atomic_write
+from bh8_gym.agents.policy_io import RUN_METADATA_FILE, atomic_write
 from bh8_gym.agents.training.pretrain import (
     DEMONSTRATIONS_FILE,
     PretrainSettings,

@@ -89,6 +89,8 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         self.joint_names = hand_urdf.JOINT_NAMES
         self.joint_indices = [self._joint_index_by_name[name] for name in self.joint_names]
         self.tip_link_indices = [self._link_index_by_name[name] for name in hand_urdf.TIP_LINK_NAMES]
+        self._finger_links = [(self._link_index_by_name[f"f{finger}_inner"], self._link_index_by_name[f"f{finger}_outer"])
+                              for finger in (1, 2, 3)]
         # Every joint motor off first (PyBullet enables velocity motors by default).
         all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
         p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)
