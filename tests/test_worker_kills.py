@@ -54,14 +54,17 @@ def _kill_and_wait(kill_workers, command: list[str], folder: Path, ready, choose
 
 
 @pytest.mark.timeout(300)
-def test_killing_the_evaluation_worker_of_bh8_train_ends_it_in_seconds(kill_workers, tmp_path):
+@pytest.mark.parametrize("victim", ["env worker", "evaluation worker"])
+def test_killing_a_worker_of_bh8_train_after_its_first_evaluation_ends_it_in_seconds(kill_workers, tmp_path, victim):
+    """The env worker (before: the process never exited) or the evaluation worker (before: a
+    40-line traceback), once the first evaluation has started the evaluation worker."""
     (tmp_path / "tiny.toml").write_text(kill_workers.TINY)
     command = [sys.executable, "-m", "bh8_gym.cli", "train", "--config", "tiny.toml", "--out", "run", "--no-progress"]
     # the env worker, then the evaluation worker, which the first evaluation starts: the newest
     code, seconds, lines, left = _kill_and_wait(kill_workers, command, tmp_path, lambda found: len(found) >= 2,
-                                                max)
+                                                min if victim == "env worker" else max)
     assert code == 1 and seconds <= 10 and not left, (code, seconds, lines, left)
-    assert len(lines) == 1 and lines[0].startswith("bh8 train: evaluation worker") and "--resume" in lines[0], lines
+    assert len(lines) == 1 and lines[0].startswith(f"bh8 train: {victim}") and "--resume" in lines[0], lines
 
 
 @pytest.mark.timeout(300)
