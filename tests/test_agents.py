@@ -139,7 +139,7 @@ def test_policy_file_rejects_pickles_and_foreign_files(tmp_path):
     for name in ("foreign.npz", "pickled.npz"):
         with pytest.raises(PolicyFileError):
             NumpyPolicy(tmp_path / name)
-    with pytest.raises(PolicyFileError, match="cannot read"):
+    with pytest.raises(PolicyFileError, match="cannot be read"):
         NumpyPolicy(tmp_path / "missing.npz")
 
 
