@@ -6,7 +6,8 @@ verb) or a module left directly in agents/. A room stands one floor above the hi
 imports, so every arrow runs down; an arrow that a longer way down already implies is not drawn.
 It prints the floors and exits 1 if rooms import each other in a circle (then no floor exists).
 
-Run: python benchmarks/draw_module_map.py [--out docs/images/architecture.png]
+Run: python benchmarks/draw_module_map.py [--out docs/images/architecture.png] [--root CHECKOUT]
+(--root draws another checkout, e.g. the "before" map from a `git worktree add` of an older commit.)
 """
 from __future__ import annotations
 
@@ -18,9 +19,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def room_of(path: Path) -> str | None:
+def room_of(path: Path, root: Path = ROOT) -> str | None:
     """The room a source file belongs to (None: a package's face of the whole tree)."""
-    parts = path.relative_to(ROOT).with_suffix("").parts
+    parts = path.relative_to(root).with_suffix("").parts
     if parts[0] == "agents":
         parts = ("bh8_gym", "agents", *parts[1:])
     if len(parts) == 2:
@@ -30,21 +31,21 @@ def room_of(path: Path) -> str | None:
     return parts[1] + "/"
 
 
-def module_name(path: Path) -> str:
-    parts = path.relative_to(ROOT).with_suffix("").parts
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = path.relative_to(root).with_suffix("").parts
     if parts[0] == "agents":
         parts = ("bh8_gym", "agents", *parts[1:])
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def read_rooms() -> tuple[dict[str, int], dict[str, set[str]]]:
+def read_rooms(root: Path = ROOT) -> tuple[dict[str, int], dict[str, set[str]]]:
     """Lines per room, and the rooms each room imports."""
-    files = sorted([*ROOT.glob("bh8_gym/**/*.py"), *ROOT.glob("agents/**/*.py")])
-    modules = {module_name(path): path for path in files}
+    files = sorted([*root.glob("bh8_gym/**/*.py"), *root.glob("agents/**/*.py")])
+    modules = {module_name(path, root): path for path in files}
     lines: dict[str, int] = {}
     imports: dict[str, set[str]] = {}
     for path in files:
-        room = room_of(path)
+        room = room_of(path, root)
         if room is None:
             continue
         source = path.read_text()
@@ -58,7 +59,7 @@ def read_rooms() -> tuple[dict[str, int], dict[str, set[str]]]:
             else:
                 continue
             for name in names:
-                target = room_of(modules[name]) if name in modules else None
+                target = room_of(modules[name], root) if name in modules else None
                 if target is not None and target != room:
                     used.add(target)
     return lines, imports
@@ -101,7 +102,8 @@ def drawn_arrows(imports: dict[str, set[str]]) -> list[tuple[str, str]]:
     return arrows
 
 
-def draw(lines: dict[str, int], floors: dict[str, int], arrows: list[tuple[str, str]], out: Path) -> None:
+def draw(lines: dict[str, int], floors: dict[str, int], arrows: list[tuple[str, str]], imports: int,
+         out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -133,7 +135,7 @@ def draw(lines: dict[str, int], floors: dict[str, int], arrows: list[tuple[str, 
     axes.set_xticks([])
     for side in ("top", "right", "bottom", "left"):
         axes.spines[side].set_visible(False)
-    axes.set_title(f"{len(place)} rooms on {top} floors, {sum(len(used) for used in IMPORTS.values())} imports "
+    axes.set_title(f"{len(place)} rooms on {top} floors, {imports} imports "
                    f"between rooms ({len(arrows)} drawn: the rest a longer way implies); every arrow runs down",
                    fontsize=10)
     figure.tight_layout()
@@ -142,23 +144,21 @@ def draw(lines: dict[str, int], floors: dict[str, int], arrows: list[tuple[str, 
     plt.close(figure)
 
 
-IMPORTS: dict[str, set[str]] = {}
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=None, help="PNG to draw (default: print the floors only)")
+    parser.add_argument("--root", type=Path, default=ROOT, help="the checkout to read (default: this one)")
     args = parser.parse_args(argv)
-    lines, imports = read_rooms()
-    IMPORTS.update(imports)
+    lines, imports = read_rooms(args.root.resolve())
     floors = floors_of(imports)
     for floor in range(max(floors.values()), 0, -1):
         rooms = sorted(room for room in floors if floors[room] == floor)
         print(f"floor {floor}: " + ", ".join(f"{room} {lines[room]}" for room in rooms))
     arrows = drawn_arrows(imports)
-    print(f"{len(floors)} rooms, {sum(len(used) for used in imports.values())} imports between rooms, no circle")
+    count = sum(len(used) for used in imports.values())
+    print(f"{len(floors)} rooms on {max(floors.values())} floors, {count} imports between rooms, no circle")
     if args.out is not None:
-        draw(lines, floors, arrows, args.out)
+        draw(lines, floors, arrows, count, args.out)
         print(f"drew {args.out}")
     return 0
 

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import os
 import signal
 import sys
 
@@ -110,7 +111,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
+        print(f"\nbh8 {args.command}: interrupted (Ctrl-C)", file=sys.stderr)
         return 130
+    except (Exception, MemoryError, RecursionError) as error:  # noqa: BLE001 - the last line of defence
+        # A failure no check of ours foresaw: one line and exit 1, never a raw traceback (set
+        # BH8_TRACEBACK=1 to see where it came from).
+        if os.environ.get("BH8_TRACEBACK"):
+            raise
+        text = " ".join(str(error).split())[:300] or type(error).__name__
+        print(f"bh8 {args.command}: failed: {type(error).__name__}: {text} (BH8_TRACEBACK=1 shows where)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ VELOCITY_FULL_SCALE = 16.0  # counts per sample: no-load motor speed ≈ 14 coun
 STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
+MAX_EPISODE_SECONDS = 600.0  # our bound on one episode (the envs' are 2-3 s)
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
 
@@ -110,8 +111,10 @@ class LoopInterface:
         for name, value in (("lcvc", lcvc), ("lfvc", lfvc), ("lfdpc", lfdpc)):
             if not (isinstance(value, (int, np.integer)) and 1 <= value <= 255):
                 raise ValueError(f"{name} must be an integer 1..255 (Table 4), got {value!r}")
-        if not episode_seconds > 0:
-            raise ValueError(f"episode_seconds must be > 0, got {episode_seconds!r}")
+        if (isinstance(episode_seconds, bool) or not isinstance(episode_seconds, (int, float))
+                or not 0 < episode_seconds <= MAX_EPISODE_SECONDS):
+            # bounded before `episode_steps` loops over it
+            raise ValueError(f"episode_seconds must be in (0, {MAX_EPISODE_SECONDS:g}] s, got {episode_seconds!r:.40}")
         check_switch("lfdpd", lfdpd)
         check_switch("privileged", privileged)
         check_switch("history", history)
@@ -298,6 +301,8 @@ class LoopInterface:
 
     def episode_steps(self, processing_time: float) -> int:
         """Control blocks after the "A" block until the episode's end, at `processing_time` per cycle."""
+        if not (isinstance(processing_time, (int, float)) and 0 <= processing_time <= MAX_EPISODE_SECONDS):
+            raise ValueError(f"processing_time must be 0 to {MAX_EPISODE_SECONDS:g} s, got {processing_time!r:.40}")
         elapsed = self.next_elapsed(0.0, len(self.start_block), processing_time)
         steps = 0
         while not self.episode_over(elapsed):

@@ -26,7 +26,7 @@ from bh8_gym.agents.evaluation.evaluate import (
     wilson_interval,
 )
 from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
-from bh8_gym.agents.deployment.policy_io import PolicyFileError, atomic_write_npz
+from bh8_gym.agents.policy_io import PolicyFileError, atomic_write_npz
 
 REACH = "BH8FingerReach-v0"
 
@@ -139,7 +139,7 @@ def test_policy_file_rejects_pickles_and_foreign_files(tmp_path):
     for name in ("foreign.npz", "pickled.npz"):
         with pytest.raises(PolicyFileError):
             NumpyPolicy(tmp_path / name)
-    with pytest.raises(PolicyFileError, match="cannot read"):
+    with pytest.raises(PolicyFileError, match="cannot be read"):
         NumpyPolicy(tmp_path / "missing.npz")
 
 
@@ -278,7 +278,7 @@ def _umask() -> int:
 
 def test_damaged_npz_is_a_policy_file_error(tmp_path):
     from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
-    from bh8_gym.agents.deployment.policy_io import PolicyFileError
+    from bh8_gym.agents.policy_io import PolicyFileError
 
     path = _export_untrained_reach_policy(tmp_path)
     with np.load(path) as data:
@@ -294,7 +294,7 @@ def test_a_truncated_or_garbled_npz_is_a_policy_file_error(tmp_path, capsys, dam
     file that is not a zip at all) is a PolicyFileError, and `bh8 eval` a one-line error, exit 2
     (tracebacks before)."""
     from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
-    from bh8_gym.agents.deployment.policy_io import PolicyFileError
+    from bh8_gym.agents.policy_io import PolicyFileError
     from bh8_gym.cli import main
 
     data = _export_untrained_reach_policy(tmp_path).read_bytes()
@@ -416,7 +416,7 @@ def test_sac_with_gsde_is_refused_by_name(tmp_path):
 
     from bh8_gym.agents.env_factory import make_env
     from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
-    from bh8_gym.agents.deployment.policy_io import PolicyFileError
+    from bh8_gym.agents.policy_io import PolicyFileError
 
     env = make_env(REACH, {})
     try:

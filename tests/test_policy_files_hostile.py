@@ -182,9 +182,9 @@ def _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch) -
     ("action bounds of another size", "action_low has shape (7,)"),
     ("a NaN weight", "not a finite number"),
     ("a negative variance", "not a finite number (or a variance is not positive)"),
-    ("n_layers true", "n_layers must be 1..64, got True"),
-    ("n_layers huge", "n_layers must be 1..64"),
-    ("metadata a list", "metadata is not a JSON object"),
+    ("n_layers true", "n_layers must be an integer in 1..64, got True"),
+    ("n_layers huge", "n_layers must be an integer in 1..64"),
+    ("metadata a list", "metadata is not a policy metadata"),
 ])
 def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz, tmp_path, capsys, monkeypatch, case, message):
     """An .npz whose layer shapes do not chain loaded, ran HI on the hand, then failed at the first

@@ -376,4 +376,4 @@ def test_resume_names_a_damaged_run_file(short_run, tmp_path, damaged):
     shutil.copytree(run, copy)
     (copy / damaged).write_text('{"config": {"algor')
     code, _, err = _train("--resume", "--out", copy, "--timesteps", "64")
-    assert code == 2 and f"cannot read {str(copy / damaged)!r}" in err and "Traceback" not in err
+    assert code == 2 and f"{str(copy / damaged)!r} is not valid JSON" in err and "Traceback" not in err

@@ -1280,3 +1280,52 @@ def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
         assert not any(action == "write" and i < last_open for i, (client, action) in enumerate(log))
     if not history.written_since_open:
         assert not any(action == "write" and i > last_open for i, (client, action) in enumerate(log))
+
+
+_HAMMER = """
+import os, sys, time
+device, until = sys.argv[1], time.monotonic() + float(sys.argv[2])
+while time.monotonic() < until:
+    try:
+        os.close(os.open(device, os.O_RDWR | os.O_NOCTTY))
+    except OSError:
+        pass
+"""
+
+
+def test_clients_opening_and_closing_in_a_tight_loop_do_not_starve_another(tmp_path):
+    """Issue 39, finding 11: a client that opens and closes the device in a tight loop kept a second
+    client from ever getting a session (each of its opens was refused: the port in use, or a pty
+    shared with the loop). Now a refused client waits in line: those that just had the port are
+    hung up while it waits, and a pty whose other opener left without writing is the remaining
+    client's. With three such loops, the client gets its session, and only its own reply, in seconds."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    hammers = [subprocess.Popen([sys.executable, "-c", _HAMMER, link.device, "60"]) for _ in range(3)]
+    try:
+        time.sleep(1.0)  # the loop has the port to itself for a while
+        deadline, attempts = time.monotonic() + 20, 0
+        while True:
+            assert time.monotonic() < deadline, f"no session in {attempts} attempts"
+            attempts += 1
+            try:
+                fd = _raw_open(link.device)
+            except OSError:  # EACCES: a pty the server closed to further opens
+                time.sleep(0.05)
+                continue
+            try:
+                os.write(fd, b"1FGET DP\r")
+                data, hung_up = _read_until_hangup(fd, 1.0)
+            except OSError:
+                data, hung_up = b"", True
+            finally:
+                os.close(fd)
+            if not hung_up and data:
+                assert data == b"1FGET DP\n\r8500\n\r=> "
+                break
+            time.sleep(0.05)
+    finally:
+        for hammer in hammers:
+            hammer.kill()
+            hammer.wait()
+        link.close()

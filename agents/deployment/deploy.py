@@ -148,6 +148,34 @@ def check_deployable(policy, interface: LoopInterface) -> None:
     check_policy_runs(policy, [first, np.zeros(host_size, dtype=np.float32)], interface.action_space.shape)
 
 
+def deploy_envelope(interface: LoopInterface, max_velocity: int | None = None, max_strain: int | None = None,
+                    max_temperature: float | None = None, allow_looser: bool = False) -> SafetyEnvelope:
+    """The limits deploy enforces. A limit given on the command line is taken as it is. Otherwise the
+    policy's env envelope (`interface.safety`, which it trained in, from the policy file) may tighten
+    deploy's defaults (DEFAULT_ENVELOPE), never loosen them unless `allow_looser` (the command line's
+    --allow-looser-limits says so): a file's metadata asking for strain 255, |LCV| 127 and 1e300 C
+    once had deploy send LCV 127 where its default clamp is 100."""
+    trained = interface.safety
+    if not allow_looser:
+        trained = SafetyEnvelope(max_strain=min(trained.max_strain, DEFAULT_ENVELOPE.max_strain),
+                                 max_velocity=min(trained.max_velocity, DEFAULT_ENVELOPE.max_velocity),
+                                 max_temperature=min(trained.max_temperature, DEFAULT_ENVELOPE.max_temperature))
+    try:
+        return SafetyEnvelope(
+            max_strain=trained.max_strain if max_strain is None else max_strain,
+            max_velocity=trained.max_velocity if max_velocity is None else max_velocity,
+            max_temperature=trained.max_temperature if max_temperature is None else max_temperature)
+    except ValueError as error:
+        raise ValueError(str(error).replace("SafetyEnvelope.", "")) from None
+
+
+def looser_limits(interface: LoopInterface) -> list[str]:
+    """The limits of the policy's env envelope that are looser than deploy's defaults."""
+    trained, default = interface.safety, DEFAULT_ENVELOPE
+    return [f"{name} {getattr(trained, name)} (default {getattr(default, name)})"
+            for name in ("max_strain", "max_velocity", "max_temperature") if getattr(trained, name) > getattr(default, name)]
+
+
 def check_feedback_policy(policy, interface: LoopInterface) -> None:
     """A policy that acts on the feedback blocks themselves (the grasp choice): it must be able to run
     on this env's blocks (bound to the interface) and give a finite action of the control block's
@@ -172,22 +200,16 @@ class Deployment:
 
     def __init__(self, hand, policy, interface: LoopInterface, log_file, max_velocity: int | None = None,
                  max_strain: int | None = None, max_temperature: float | None = None,
-                 on_exit: str = "GT", clock: str = "wall"):
-        """Limits None: the env's safety envelope (`interface.safety`), which it trained in."""
+                 on_exit: str = "GT", clock: str = "wall", allow_looser_limits: bool = False):
+        """Limits None: the env's safety envelope (`interface.safety`), which it trained in, as far as
+        it is no looser than deploy's defaults (`deploy_envelope`)."""
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
         if on_exit not in EXIT_ACTIONS:
             raise ValueError(f"on_exit must be one of {EXIT_ACTIONS}, got {on_exit!r}")
         check_deployable(policy, interface)
         self.hand, self.policy, self.interface = hand, policy, interface
-        trained = interface.safety
-        try:
-            self.envelope = SafetyEnvelope(
-                max_strain=trained.max_strain if max_strain is None else max_strain,
-                max_velocity=trained.max_velocity if max_velocity is None else max_velocity,
-                max_temperature=trained.max_temperature if max_temperature is None else max_temperature)
-        except ValueError as error:
-            raise ValueError(str(error).replace("SafetyEnvelope.", "")) from None
+        self.envelope = deploy_envelope(interface, max_velocity, max_strain, max_temperature, allow_looser_limits)
         max_velocity = self.envelope.max_velocity
         self.max_strain, self.max_temperature = self.envelope.max_strain, self.envelope.max_temperature
         self.log_file = log_file
@@ -432,7 +454,8 @@ def _finite_float(text: str) -> float:
 EXIT_STATUS_HELP = """\
 the same blocks, byte for byte, as `bh8 eval` of the policy (on `bh8 serve --env ID --seed N`):
   --on-exit none --clock cycles (the default limits are the env's own safety envelope: deploy
-  clamps nothing the env allows and stops where the env's episode ends with a safety stop)
+  clamps nothing the env allows and stops where the env's episode ends with a safety stop; a
+  policy's envelope looser than deploy's defaults needs --allow-looser-limits)
 
 exit status:
   0    the cycles ran; the hand was left safe
@@ -477,6 +500,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "default: %(default)s")
     parser.add_argument("--on-exit", choices=EXIT_ACTIONS, default="GT",
                         help="after leaving LOOP: GT fingers off (default), T all motors off, none")
+    parser.add_argument("--allow-looser-limits", action="store_true",
+                        help="let the policy file's env envelope loosen deploy's default limits (strain "
+                             f"{DEFAULT_ENVELOPE.max_strain}, |LCV| {DEFAULT_ENVELOPE.max_velocity}, "
+                             f"{DEFAULT_ENVELOPE.max_temperature:g} C); without it a policy's envelope can only "
+                             "tighten them (--max-* set a limit outright)")
     add_trust_argument(parser)
 
 
@@ -504,9 +532,19 @@ def run(args: argparse.Namespace) -> int:
         env_id = policy.metadata.get("env_id")
         if env_id is None:
             raise DeployError(f"{str(args.policy)!r} does not name its environment; export it with `bh8 export`")
-        interface = interface_for(env_id, policy.metadata.get("env_kwargs", {}))
+        env_kwargs = policy.metadata.get("env_kwargs", {})
+        if not isinstance(env_id, str) or not isinstance(env_kwargs, dict):
+            raise DeployError(f"{str(args.policy)!r}: its env_id must be a string and env_kwargs a table")
+        interface = interface_for(env_id, env_kwargs)
         check_deployable(policy, interface)
-    except (PolicyFileError, FileNotFoundError, DeployError, ValueError) as exc:
+        # Everything the policy file decides, checked before the port is opened (exit 2, not 1).
+        cycles = interface.nominal_episode_steps() if args.cycles is None else args.cycles
+        deploy_envelope(interface, args.max_velocity, args.max_strain, args.max_temperature, args.allow_looser_limits)
+        looser = looser_limits(interface)
+        if looser and not args.allow_looser_limits:
+            print(f"bh8 deploy: the policy's env allows {', '.join(looser)}; deploy keeps its defaults "
+                  "(--allow-looser-limits to take the policy's)", file=sys.stderr)
+    except (PolicyFileError, FileNotFoundError, DeployError, ValueError, TypeError) as exc:
         print(f"bh8 deploy: {exc}", file=sys.stderr)
         return 2
     try:
@@ -515,11 +553,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"bh8 deploy: cannot write the log: {exc}", file=sys.stderr)
         return 2
     try:
-        cycles = interface.nominal_episode_steps() if args.cycles is None else args.cycles
         with BarrettHand(args.port, baudrate=args.baud) as hand, RecordLog(args.log) as log_file:
             deployment = Deployment(hand, policy, interface, log_file, max_velocity=args.max_velocity,
                                     max_strain=args.max_strain, max_temperature=args.max_temperature,
-                                    on_exit=args.on_exit, clock=args.clock)
+                                    on_exit=args.on_exit, clock=args.clock,
+                                    allow_looser_limits=args.allow_looser_limits)
             try:
                 deployment.setup(interface.baud)
             except SafetyStop as stop:

@@ -13,20 +13,31 @@ This module imports numpy and gymnasium at import time; torch and SB3 only when 
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import MAX_LAYERS, POLICY_FILE_LIMIT_BYTES, PolicyFileError, atomic_write_npz
+from bh8_gym.agents.policy_io import (
+    MAX_LAYERS,
+    PolicyFileError,
+    atomic_write_npz,
+    check_metadata,
+    read_policy_bytes,
+)
 
 FORMAT = "bh8-numpy-policy/1"
 NPZ_MEMBER_LIMIT = 2 * MAX_LAYERS + 16  # an export's arrays: two per layer and eight others
+NPZ_UNPACKED_LIMIT_BYTES = 64 << 20  # an export's arrays (bh8-gym's: about 200 KB)
+NPZ_DTYPES = (np.dtype("<f8"), np.dtype("<f4"))
+NPZ_TEXT_LIMIT_BYTES = 4 << 20  # the metadata JSON, as a numpy unicode string (4 bytes a character)
 
 _ACTIVATIONS = {
     "tanh": np.tanh,
@@ -59,9 +70,8 @@ class NumpyPolicy:
             raise PolicyFileError(f"{str(self.path)!r} is damaged: its metadata is nested too deep; export it again") from None
 
     def _read(self, arrays: dict[str, np.ndarray]) -> None:
-        self.metadata: dict[str, Any] = json.loads(str(arrays["metadata"]))
-        if not isinstance(self.metadata, dict):
-            raise PolicyFileError(f"{str(self.path)!r}: its metadata is not a JSON object")
+        self.metadata: dict[str, Any] = check_metadata(json.loads(str(arrays["metadata"])),
+                                                        f"{str(self.path)!r}'s metadata")
         n_layers = self.metadata["n_layers"]
         if not (isinstance(n_layers, int) and not isinstance(n_layers, bool) and 1 <= n_layers <= MAX_LAYERS):
             raise PolicyFileError(f"{str(self.path)!r}: n_layers must be 1..{MAX_LAYERS}, got {n_layers!r}")
@@ -147,33 +157,43 @@ class NumpyPolicy:
 
 
 def read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the policy file at `path`, read with nothing unpickled and nothing allocated
-    that the file does not hold (`_check_npz_members`); PolicyFileError for anything else."""
+    """Every array of the policy file at `path`, read bounded (`read_policy_bytes`), with nothing
+    unpickled and nothing allocated that the file does not hold (`_check_npz_members`);
+    PolicyFileError for anything else."""
+    data = read_policy_bytes(path)
     try:
-        if path.is_file() and not zipfile.is_zipfile(path):  # np.load would try to unpickle it
+        if not zipfile.is_zipfile(io.BytesIO(data)):  # np.load would try to unpickle it
             raise PolicyFileError(f"{str(path)!r} is not an .npz file (truncated, or something else); "
                                   "export the policy again")
-        with zipfile.ZipFile(path) as archive:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
             _check_npz_members(archive, path)
-        with np.load(path, allow_pickle=False) as data:
-            return {name: data[name] for name in data.files}
+        with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
+            return {name: arrays[name] for name in arrays.files}
     except PolicyFileError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged members: BadZipFile, EOFError
-        raise PolicyFileError(f"cannot read policy file {str(path)!r}: {exc}") from exc
+    # damaged members: BadZipFile, EOFError; an encrypted one: RuntimeError; an unknown method:
+    # NotImplementedError; a bad compressed stream: zlib.error (members are checked stored)
+    except (OSError, ValueError, EOFError, RuntimeError, NotImplementedError, zipfile.BadZipFile, zlib.error,
+            MemoryError) as exc:
+        raise PolicyFileError(f"cannot read policy file {str(path)!r}: {str(exc)[:200] or type(exc).__name__}") from None
 
 
 def _check_npz_members(archive: zipfile.ZipFile, path: Path) -> None:
     """Refuse, before numpy reads it, an .npz that cannot be an export: more members than
-    NPZ_MEMBER_LIMIT, more than POLICY_FILE_LIMIT_BYTES unpacked, or a member whose .npy header
-    declares other than the data it holds (numpy allocates what the header declares before reading:
-    a header declaring 10^12 floats was an allocation error)."""
+    NPZ_MEMBER_LIMIT, a compressed member (numpy's savez stores them: nothing to inflate), more than
+    NPZ_UNPACKED_LIMIT_BYTES unpacked, an array that is not float32/float64 or a short string (an
+    int8 array grows eightfold as float64: an 880 KB file took gigabytes), or a member whose .npy
+    header declares other than the data it holds (numpy allocates what the header declares before
+    reading: a header declaring 10^11 floats was an allocation error)."""
     members = archive.infolist()
     if len(members) > NPZ_MEMBER_LIMIT:
         raise PolicyFileError(f"{str(path)!r} holds {len(members)} arrays, more than an export's {NPZ_MEMBER_LIMIT}: "
                               "not an exported policy")
-    if sum(member.file_size for member in members) > POLICY_FILE_LIMIT_BYTES:
-        raise PolicyFileError(f"{str(path)!r} unpacks to more than {POLICY_FILE_LIMIT_BYTES >> 20} MB: "
+    if any(member.compress_type != zipfile.ZIP_STORED for member in members):
+        raise PolicyFileError(f"{str(path)!r} holds compressed arrays, which an export (numpy's savez) never "
+                              "writes: not an exported policy")
+    if sum(member.file_size for member in members) > NPZ_UNPACKED_LIMIT_BYTES:
+        raise PolicyFileError(f"{str(path)!r} unpacks to more than {NPZ_UNPACKED_LIMIT_BYTES >> 20} MB: "
                               "not an exported policy")
     readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
     for member in members:
@@ -184,6 +204,9 @@ def _check_npz_members(archive: zipfile.ZipFile, path: Path) -> None:
                                       "which numpy's savez does not write: not an exported policy")
             shape, _, dtype = readers[version](handle)
             declared, held = math.prod(shape) * dtype.itemsize, member.file_size - handle.tell()
+        if dtype not in NPZ_DTYPES and not (dtype.kind == "U" and declared <= NPZ_TEXT_LIMIT_BYTES):
+            raise PolicyFileError(f"{str(path)!r}: {member.filename!r} holds {dtype} values; an export holds "
+                                  "float64 or float32 arrays and short strings")
         if declared != held:
             raise PolicyFileError(f"{str(path)!r} is damaged: {member.filename!r} declares {declared} bytes of "
                                   f"data but holds {held}; export it again")

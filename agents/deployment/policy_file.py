@@ -13,7 +13,7 @@ import numpy as np
 
 from bh8_gym.agents.choice.policy import FORMAT as CHOICE_FORMAT
 from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy, read_npz
-from bh8_gym.agents.deployment.policy_io import PolicyFileError
+from bh8_gym.agents.policy_io import PolicyFileError
 from bh8_gym.agents.deployment.sb3_file import SB3Policy
 
 

@@ -19,13 +19,14 @@ import math
 import pickle
 import re
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import MAX_LAYERS, POLICY_FILE_LIMIT_BYTES, PolicyFileError, find_run_metadata
+from bh8_gym.agents.policy_io import MAX_LAYERS, PolicyFileError, find_run_metadata, read_policy_bytes
 
 SB3_DATA_LIMIT_BYTES = 16 << 20  # the `data` JSON of an SB3 .zip
 # What an SB3 .zip may make SB3 build when it is loaded (bh8-gym's networks have about 20 k
@@ -63,28 +64,36 @@ def _allowed_classes() -> dict[str, type]:
     return {f"{cls.__module__}.{cls.__qualname__}": cls for cls in classes}
 
 
-def _sb3_data(raw: bytes, path: Path) -> tuple[dict | None, int]:
+# What reading a damaged member can raise: BadZipFile and EOFError (cut short or a bad CRC), zlib.error,
+# lzma/bz2's OSError and EOFError (a bad stream), NotImplementedError (an unknown method),
+# RuntimeError (an encrypted member), MemoryError (a stream past what it says).
+ZIP_ERRORS = (zipfile.BadZipFile, EOFError, OSError, zlib.error, NotImplementedError, RuntimeError, MemoryError,
+              ValueError, RecursionError)
+
+
+def _sb3_data(raw: bytes, path: Path) -> tuple[dict | None, dict[str, int]]:
     """An SB3 .zip's `data` JSON (None if it has none: not an SB3 model, SB3's own error says so)
-    and the unpacked size of its weights (`policy.pth`, 0 without), read without unpickling."""
+    and the unpacked size of each of its members, read without unpickling."""
     try:
         with zipfile.ZipFile(io.BytesIO(raw)) as archive:
-            names = archive.namelist()
-            if "data" not in names:
-                return None, 0
-            weights = archive.getinfo("policy.pth").file_size if "policy.pth" in names else 0
+            sizes = {member.filename: member.file_size for member in archive.infolist()}
+            if "data" not in sizes:
+                return None, sizes
             with archive.open("data") as member:
                 text = member.read(SB3_DATA_LIMIT_BYTES + 1)
         if len(text) > SB3_DATA_LIMIT_BYTES:
             raise PolicyFileError(f"{str(path)!r}: its data is larger than {SB3_DATA_LIMIT_BYTES >> 20} MB")
         data = json.loads(text)
-    except (zipfile.BadZipFile, EOFError, ValueError, RecursionError) as error:
-        raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
+    except PolicyFileError:
+        raise
+    except ZIP_ERRORS as error:
+        raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {str(error)[:200] or type(error).__name__}") from None
     if not isinstance(data, dict):
         raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: its data is not a JSON object")
-    return data, weights
+    return data, sizes
 
 
-def _check_sb3_sizes(data: dict, weights_bytes: int, path: Path) -> None:
+def _check_sb3_sizes(data: dict, member_sizes: dict[str, int], path: Path) -> None:
     """PolicyFileError unless what SB3 builds when it loads the model `data` describes is bounded,
     checked before it builds anything (a 20 KB .zip asking for net_arch [12000, 12000] took minutes
     and 3 GB; n_steps 1e12 was an allocation error): the spaces, the buffer SB3 allocates (rollout:
@@ -92,6 +101,8 @@ def _check_sb3_sizes(data: dict, weights_bytes: int, path: Path) -> None:
     and the parameters, which must fit in the weights the file stores (4 bytes each at least)."""
     def bad(what: str) -> PolicyFileError:
         return PolicyFileError(f"{str(path)!r}: {what}; not a model bh8-gym loads")
+
+    weights_bytes = member_sizes.get("policy.pth", 0)
 
     def count(where: dict, key: str, default: int, limit: int) -> int:
         value = where.get(key, default)
@@ -121,7 +132,7 @@ def _check_sb3_sizes(data: dict, weights_bytes: int, path: Path) -> None:
     parameters = 0
     for name, widths in nets.items():
         if widths is None:
-            continue  # SB3's default: two layers of 64 (PPO) or 256 (SAC)
+            widths = [256, 256] if off_policy else [64, 64]  # SB3's defaults
         if not (isinstance(widths, list) and len(widths) <= MAX_LAYERS and all(
                 isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= SB3_LAYER_WIDTH_LIMIT for v in widths)):
             raise bad(f"its net_arch must list at most {MAX_LAYERS} layer widths from 1 to {SB3_LAYER_WIDTH_LIMIT}, "
@@ -135,6 +146,13 @@ def _check_sb3_sizes(data: dict, weights_bytes: int, path: Path) -> None:
     if parameters > SB3_PARAMETER_LIMIT or 4 * parameters > weights_bytes:
         raise bad(f"its net_arch makes a network of {parameters} parameters, but the file stores "
                   f"{weights_bytes} bytes of weights (and bh8-gym loads at most {SB3_PARAMETER_LIMIT})")
+    # Each member holds at most the network's tensors (the optimiser: two more per parameter) in
+    # float64 and torch's framing: a 1 MB .zip unpacking a 0.96 GB tensor is refused unread.
+    allowed = 3 * 8 * parameters + (1 << 20)
+    oversized = sorted(name for name, size in member_sizes.items() if name != "data" and size > allowed)
+    if oversized:
+        raise bad(f"its {', '.join(oversized)} unpack to more than a network of {parameters} parameters needs "
+                  f"({allowed} bytes)")
 
 
 def _stand_ins(data: dict, path: Path) -> dict[str, Any]:
@@ -218,15 +236,10 @@ class SB3Policy:
         if name is not None and name not in algorithms:
             raise PolicyFileError(f"{str(path)!r}: unsupported algorithm {name!r}")
         candidates = [algorithms[name]] if name else [PPO, SAC]
-        try:
-            if Path(path).stat().st_size > POLICY_FILE_LIMIT_BYTES:
-                raise PolicyFileError(f"{str(path)!r} is larger than {POLICY_FILE_LIMIT_BYTES >> 20} MB: not a policy")
-            raw = Path(path).read_bytes()
-        except OSError as error:
-            raise PolicyFileError(f"cannot read SB3 model {str(path)!r}: {error}") from None
-        data, weights_bytes = _sb3_data(raw, Path(path))
+        raw = read_policy_bytes(Path(path))
+        data, sizes = _sb3_data(raw, Path(path))
         if data is not None:
-            _check_sb3_sizes(data, weights_bytes, Path(path))
+            _check_sb3_sizes(data, sizes, Path(path))
         custom_objects = None if trust or data is None else _stand_ins(data, Path(path))
         errors = []
         for algorithm in candidates:
@@ -241,8 +254,8 @@ class SB3Policy:
                                       "bh8-gym saved") from None
             # AssertionError: SB3's "No data found in the saved file" (a zip that is not an SB3 model);
             # AttributeError: a zip without its policy.pth
-            except (AssertionError, AttributeError, KeyError, ValueError, TypeError, RuntimeError) as exc:
-                errors.append(f"{algorithm.__name__}: {exc}")
+            except (AssertionError, AttributeError, KeyError, IndexError, TypeError, *ZIP_ERRORS) as exc:
+                errors.append(f"{algorithm.__name__}: {str(exc)[:200] or type(exc).__name__}")
         else:
             raise PolicyFileError(f"cannot load SB3 model {str(path)!r}: {'; '.join(errors)}")
         self.metadata.setdefault("algorithm", type(self.model).__name__)

@@ -16,13 +16,13 @@ policy. The same record of which script holds which episode labels the teacher o
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 from tqdm import tqdm
 
+from bh8_gym.safe_files import read_json_bounded
 from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import object_name, run_episodes
@@ -158,7 +158,7 @@ def save_records(records: Sequence[CeilingRecord], path: Path) -> None:
 
 
 def load_records(path: Path) -> list[CeilingRecord]:
-    data = json.loads(Path(path).read_text())
+    data = read_json_bounded(path, 256 << 20, "ceiling records")
     if not isinstance(data, list):
         raise ValueError(f"{path}: not a list of ceiling records")
     return [CeilingRecord.from_json(item) for item in data]

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
+from bh8_gym.child_processes import check_alive
+
 from bh8_gym.envs.objects import object_family
 from bh8_gym.envs.scenes import episode_object
 
@@ -109,6 +111,7 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
     tracker = StrainTracker(env.unwrapped.layout)
     results = []
     for episode in episodes:
+        check_alive()
         tracker.reset()
         if baseline is not None and hasattr(baseline, "run_episode"):
             total, length, info, extra_seconds, grasp_time = baseline.run_episode(env, seed + episode, tracker)
@@ -120,6 +123,7 @@ def run_episodes(policy, env, n_episodes: int, seed: int = 0, deterministic: boo
                 policy.reset_noise()
             total, length, done, extra_seconds = 0.0, 0, False, 0.0
             while not done:
+                check_alive()  # a worker of this command killed meanwhile: stop now, not at the end
                 if baseline is not None:
                     action = baseline.act(obs, info)
                 else:
@@ -195,6 +199,7 @@ def run_policy_batch(policy, envs, n_episodes: int, seed: int = 0, progress: boo
     with tqdm(total=n_episodes, desc="episodes", unit="ep", disable=None if progress else True, leave=False) as bar:
         running = [slot for slot in slots if slot.episode is not None]
         while running:
+            check_alive()
             actions, _ = policy.predict(np.stack([slot.observation for slot in running]), deterministic=True)
             for slot, action in zip(running, actions, strict=True):
                 slot.observation, reward, terminated, truncated, slot.info = slot.env.step(action)

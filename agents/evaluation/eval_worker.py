@@ -23,6 +23,7 @@ import traceback
 from pathlib import Path
 
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.child_processes import WorkerDied, in_worker, stop, track
 from bh8_gym.agents.evaluation.episodes import run_episodes
 
 #: Envs per process that run a policy's episodes at once: a forward pass of a batch of 4
@@ -31,8 +32,19 @@ from bh8_gym.agents.evaluation.episodes import run_episodes
 BATCH_ENVS = 4
 
 
-class EvaluationWorkerError(RuntimeError):
-    """The evaluation worker failed (its traceback in the message) or exited."""
+class EvaluationWorkerError(WorkerDied):
+    """The evaluation worker failed (its error's last line in the message, its traceback in
+    `details`) or exited."""
+
+    def __init__(self, message: str, details: str = ""):
+        super().__init__(message)
+        self.details = details
+
+
+def last_line(text: str) -> str:
+    """A traceback's informative line (its last), for a one-line message."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1][:300] if lines else "(no message)"
 
 
 class _PolicyModel:
@@ -125,8 +137,11 @@ class ScriptJob:
 def _serve(remote, env_id: str, env_kwargs: dict, n_envs: int, ignore_signals: tuple) -> None:
     """The worker: builds its envs at once (ready by the first evaluation), then answers each
     (job, n_episodes, seed, kwargs) with ("ok", results) or ("error", traceback) until None."""
-    for signum in ignore_signals:
+    # Ctrl-C reaches the whole process group: the parent handles it and ends this worker (without
+    # this, the worker died of KeyboardInterrupt with a traceback of its own).
+    for signum in {signal.SIGINT, *ignore_signals}:
         signal.signal(signum, signal.SIG_IGN)
+    in_worker()
     envs, failure = [], None
     try:
         for _ in range(n_envs):
@@ -166,6 +181,7 @@ class EvaluationWorker:
         self.process = context.Process(target=_serve, daemon=True,
                                        args=(work_remote, env_id, dict(env_kwargs), int(n_envs), tuple(ignore_signals)))
         self.process.start()
+        track(self.process, "evaluation worker")
         work_remote.close()
 
     def run(self, job, envs, n_episodes: int, seed: int, **kwargs) -> list:
@@ -194,21 +210,22 @@ class EvaluationWorker:
         except (EOFError, ConnectionResetError):
             raise self._exited() from None
         if status == "error":
-            raise EvaluationWorkerError(f"evaluation worker failed:\n{result}")
+            raise EvaluationWorkerError(f"evaluation worker failed: {last_line(result)}", details=result)
         return result
 
     def _exited(self) -> EvaluationWorkerError:
         self.process.join(timeout=1)
+        stop(self.process, wait=0.0)
         return EvaluationWorkerError(f"evaluation worker (pid {self.process.pid}) exited "
                                      f"(exit code {self.process.exitcode})")
 
-    def close(self) -> None:
-        try:
-            self._remote.send(None)
-        except OSError:
-            pass
+    def close(self, graceful: bool = True) -> None:
+        """End the worker: asked to finish (`graceful`, up to 10 s), else killed at once (after an
+        error or Ctrl-C here it may be in the middle of its episodes, which nothing waits for)."""
+        if graceful:
+            try:
+                self._remote.send(None)
+            except OSError:
+                pass
         self._remote.close()
-        self.process.join(timeout=10)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join()
+        stop(self.process, wait=10.0 if graceful else 0.0)

@@ -25,16 +25,17 @@ from bh8_gym.agents.evaluation.baselines import BASELINES, make_grasp
 from bh8_gym.agents.grasps import FAMILY
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.agents.evaluation.episodes import EpisodeResult
+from bh8_gym.child_processes import WorkerDied
+from bh8_gym.safe_files import read_json_bounded
 from bh8_gym.agents.evaluation.eval_worker import (
     BATCH_ENVS,
     EvaluationWorker,
-    EvaluationWorkerError,
     PolicyFileJob,
     ScriptJob,
     one_torch_thread,
 )
 from bh8_gym.agents.deployment.policy_file import PolicyFileError, add_trust_argument, load_policy
-from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.policy_io import atomic_write
 from bh8_gym.agents.evaluation.run_files import EVALUATIONS_FILE, read_evaluations, write_text_atomic
 from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
 from bh8_gym.cli import integer_argument, json_object_argument
@@ -150,6 +151,9 @@ def paired_line(label: str, paired: dict[str, Any]) -> str:
             f"exact McNemar p = {paired['mcnemar_p']:.3g}")
 
 
+COMPARISON_LIMIT_BYTES = 256 << 20  # another report's results.json: a record per episode
+
+
 def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str, list[dict]]:
     """(its path, its episodes) of another `bh8 eval --out` report (a directory or results.json),
     checked before any episode runs to cover the same episodes: same first seed, same count."""
@@ -157,9 +161,11 @@ def load_comparison_report(path: Path, seed: int, n_episodes: int) -> tuple[str,
     if path.is_dir():
         path = path / "results.json"
     try:
-        report = json.loads(path.read_text())
+        report = read_json_bounded(path, COMPARISON_LIMIT_BYTES, "report")
         episodes = report["episodes"]
-    except (OSError, ValueError, KeyError) as exc:
+        if not isinstance(episodes, list) or not all(isinstance(e, dict) for e in episodes):
+            raise ValueError("its episodes are not a list of records")
+    except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"--compare {str(path)!r}: not a bh8 eval report ({exc})") from None
     if report.get("seed") != seed or len(episodes) != n_episodes:
         raise ValueError(f"--compare {str(path)!r}: {len(episodes)} episodes from seed {report.get('seed')}, "
@@ -365,22 +371,23 @@ def run(args: argparse.Namespace) -> int:
             # first: it builds its envs while this process builds its own.
             worker = (EvaluationWorker(env_id, set_kwargs[name], n_envs=n_envs)
                       if args.processes > 1 and args.episodes > 1 else None)
-            envs = []
+            envs, finished = [], False
             try:
                 envs += [make_env(env_id, set_kwargs[name]) for _ in range(n_envs)]
                 kwargs = {"progress": not args.no_progress, "object_set": name}
                 results += (worker.run(job, envs, args.episodes, args.seed, **kwargs) if worker is not None
                             else job.episodes(envs, args.episodes, args.seed, **kwargs))
+                finished = True
             finally:
                 for env in envs:
                     env.close()
                 if worker is not None:
-                    worker.close()
+                    worker.close(graceful=finished)  # after an error or Ctrl-C: killed, not waited for
         paired = None
         if comparison is not None:
             theirs = paired_outcomes(*comparison, results)
             paired = paired_comparison([r.success for r in results], theirs)
-    except (PolicyFileError, FileNotFoundError, ValueError, EvaluationWorkerError) as exc:
+    except (PolicyFileError, FileNotFoundError, ValueError, WorkerDied) as exc:
         print(f"bh8 eval: {exc}", file=sys.stderr)
         return 2
     summary = summarize(results)

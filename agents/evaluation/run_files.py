@@ -6,16 +6,20 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
+import os
 import shutil
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.deployment.policy_io import atomic_write
+from bh8_gym.agents.policy_io import atomic_write
+from bh8_gym.safe_files import open_regular, read_text_bounded
 
 EVALUATIONS_FILE = "evaluations.csv"
 EVALUATION_COLUMNS = ("timesteps", "success_rate", "success_ci_low", "success_ci_high", "mean_return",
                       "std_return", "mean_length", "episodes")
 BEST_MODEL_FILE = "best_model.zip"
+EVALUATIONS_LIMIT_BYTES = 16 << 20  # a row per evaluation, about 100 bytes each
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -30,7 +34,7 @@ def write_json_atomic(path: Path, data: Any) -> None:
 
 def copy_atomic(source: Path, destination: Path) -> None:
     """Copy a file (`atomic_write`)."""
-    with open(source, "rb") as handle:
+    with open_regular(source, "file") as handle:  # a FIFO planted there is refused, not waited on
         atomic_write(destination, lambda out: shutil.copyfileobj(handle, out))
 
 
@@ -46,14 +50,17 @@ def append_evaluation(out_dir: Path, row: dict) -> None:
     path = Path(out_dir) / EVALUATIONS_FILE
     text = io.StringIO(newline="")
     writer = csv.DictWriter(text, fieldnames=EVALUATION_COLUMNS)
-    size = path.stat().st_size if path.exists() else 0
-    if size == 0:
+    last = b""
+    if os.path.lexists(path):
+        with open_regular(path, EVALUATIONS_FILE) as handle:  # a FIFO planted there is refused
+            size = os.fstat(handle.fileno()).st_size
+            if size:
+                handle.seek(size - 1)
+                last = handle.read(1)
+    if not last:
         writer.writeheader()
-    else:
-        with path.open("rb") as handle:
-            handle.seek(size - 1)
-            if handle.read(1) != b"\n":
-                text.write("\r\n")  # the csv module's line break
+    elif last != b"\n":
+        text.write("\r\n")  # the csv module's line break
     writer.writerow(row)
     with path.open("a", newline="") as handle:
         handle.write(text.getvalue())
@@ -71,8 +78,9 @@ def read_evaluations(out_dir: Path, skipped: list[int] | None = None) -> list[di
 
 def _evaluation_rows(path: Path) -> tuple[list[dict[str, str]], list[int]]:
     """The complete rows of the evaluations.csv `path` (as text) and the line numbers of the others."""
-    with path.open(newline="") as handle:  # the line breaks as written: a cut row has none
-        text = handle.read()
+    # bounded (a sparse 1 GB file, a FIFO or a link to /dev/zero is refused); the line breaks as
+    # written: a cut row has none
+    text = read_text_bounded(path, EVALUATIONS_LIMIT_BYTES, EVALUATIONS_FILE)
     lines = text.splitlines()
     cut_last = bool(text) and not text.endswith("\n")
     if not lines or next(csv.reader([lines[0]])) != list(EVALUATION_COLUMNS) or (cut_last and len(lines) == 1):
@@ -92,11 +100,9 @@ def _numbers(fields: list[str]) -> bool:
     if len(fields) != len(EVALUATION_COLUMNS):
         return False
     try:
-        for value in fields:
-            float(value)
+        return all(math.isfinite(float(value)) for value in fields)
     except ValueError:
         return False
-    return True
 
 
 def drop_evaluations_after(out_dir: Path, timesteps: int) -> list[int]:

@@ -9,6 +9,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from tqdm.auto import tqdm
 
 from bh8_gym.agents.env_factory import make_env
+from bh8_gym.child_processes import check_alive
 from bh8_gym.agents.evaluation.eval_worker import BATCH_ENVS, EvaluationWorker, PolicyJob, predictor
 from bh8_gym.agents.evaluation.episodes import run_episodes
 from bh8_gym.agents.evaluation.evaluate import percent, summarize
@@ -88,11 +89,15 @@ class EvaluationCallback(BaseCallback):
         return summary
 
     def _on_training_end(self) -> None:
+        self.close()
+
+    def close(self, graceful: bool = True) -> None:
+        """Close the validation envs and end the evaluation worker (`EvaluationWorker.close`)."""
         for env in self._envs:
             env.close()
         self._envs = []
         if self._worker is not None:
-            self._worker.close()
+            self._worker.close(graceful)
             self._worker = None
 
 
@@ -201,4 +206,5 @@ class StopCallback(BaseCallback):
         self.trainer = trainer
 
     def _on_step(self) -> bool:
+        check_alive()  # the evaluation worker killed between evaluations: stop now (WorkerDied)
         return self.trainer.stop_signal is None

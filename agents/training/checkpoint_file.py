@@ -29,9 +29,10 @@ from typing import BinaryIO
 
 import numpy as np
 
-from bh8_gym.agents.deployment.policy_io import POLICY_FILE_LIMIT_BYTES
+from bh8_gym.agents.policy_io import POLICY_FILE_LIMIT_BYTES
 
-from bh8_gym.agents.deployment.sb3_file import SB3_DATA_LIMIT_BYTES
+from bh8_gym.agents.deployment.sb3_file import SB3_DATA_LIMIT_BYTES, ZIP_ERRORS
+from bh8_gym.safe_files import open_regular, read_bounded
 
 REPLAY_BUFFER_FILE = "latest_replay_buffer.npz"
 LEGACY_REPLAY_BUFFER_FILE = "latest_replay_buffer.pkl"  # SB3's pickle, written before the .npz
@@ -44,10 +45,9 @@ class CheckpointError(ValueError):
 
 def _limited_archive(path: Path) -> zipfile.ZipFile:
     """The checkpoint zip, refused unread past POLICY_FILE_LIMIT_BYTES packed or unpacked."""
-    try:
-        if path.stat().st_size > POLICY_FILE_LIMIT_BYTES:
-            raise CheckpointError(f"{str(path)!r} is larger than {POLICY_FILE_LIMIT_BYTES >> 20} MB")
-        archive = zipfile.ZipFile(path)
+    try:  # read bounded: a FIFO or a link to /dev/zero as latest.zip is refused, not waited on
+        archive = zipfile.ZipFile(io.BytesIO(read_bounded(path, POLICY_FILE_LIMIT_BYTES, "checkpoint",
+                                                          CheckpointError)))
     except (OSError, zipfile.BadZipFile) as error:
         raise CheckpointError(f"cannot read {str(path)!r}: {error}") from None
     if sum(member.file_size for member in archive.infolist()) > POLICY_FILE_LIMIT_BYTES:
@@ -61,8 +61,8 @@ def _torch_member(archive: zipfile.ZipFile, name: str, path: Path):
 
     try:
         return torch.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, ValueError, EOFError, KeyError, zipfile.BadZipFile,
-            AttributeError, TypeError) as error:  # weights_only refuses anything but tensors and containers
+    except (pickle.UnpicklingError, KeyError, AttributeError, TypeError, *ZIP_ERRORS) as error:
+        # weights_only refuses anything but tensors and containers; a damaged member: ZIP_ERRORS
         raise CheckpointError(f"{str(path)!r}: its {name} is not plain tensors ({str(error)[:200]})") from None
 
 
@@ -81,6 +81,10 @@ def load_checkpoint(model, path: Path) -> None:
                                   f"{', '.join(missing) or 'nothing'}; unexpected {', '.join(unknown) or 'nothing'})")
         counters = _counters(archive, path)
         params = {name: _torch_member(archive, f"{name}.pth", path) for name in state_dicts}
+        bad = sorted(name for name, value in params.items() if not _finite(value))
+        if bad:  # before: the run went on and stopped later with "action must be finite", no file named
+            raise CheckpointError(f"{str(path)!r}: its {', '.join(bad)} hold NaN or infinite numbers; resume from "
+                                  "an earlier checkpoint or start the run again")
         # SB3 writes the file even when the algorithm has no such variables (then it holds nothing)
         saved_variables = (_torch_member(archive, "pytorch_variables.pth", path)
                            if "pytorch_variables.pth" in names else {})
@@ -94,9 +98,25 @@ def load_checkpoint(model, path: Path) -> None:
         setattr(model, name, value)
 
 
+def _finite(value) -> bool:
+    """Whether every floating-point tensor in `value` (a state dict, nested) is finite."""
+    import torch
+
+    if isinstance(value, torch.Tensor):
+        return not value.is_floating_point() or bool(torch.isfinite(value).all())
+    if isinstance(value, dict):
+        return all(_finite(item) for item in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_finite(item) for item in value)
+    return True
+
+
 def _counters(archive: zipfile.ZipFile, path: Path) -> dict[str, int]:
-    with archive.open("data") as member:
-        text = member.read(SB3_DATA_LIMIT_BYTES + 1)
+    try:
+        with archive.open("data") as member:
+            text = member.read(SB3_DATA_LIMIT_BYTES + 1)
+    except ZIP_ERRORS as error:
+        raise CheckpointError(f"{str(path)!r}: its data cannot be read ({str(error)[:200]})") from None
     try:
         if len(text) > SB3_DATA_LIMIT_BYTES:
             raise ValueError(f"larger than {SB3_DATA_LIMIT_BYTES >> 20} MB")
@@ -149,25 +169,42 @@ def save_replay_buffer(model, handle: BinaryIO) -> None:
     np.savez(handle, **_buffer_arrays(buffer), **{"__counters__": counters})
 
 
+def _member(archive: zipfile.ZipFile, name: str, like: np.ndarray, path: Path) -> np.ndarray:
+    """The array `name` of an .npz, read only if its header declares `like`'s shape and dtype and
+    its member holds exactly that data (numpy allocates what a header declares before reading: a
+    header declaring 10^11 floats was a MemoryError)."""
+    member = archive.getinfo(f"{name}.npy")
+    with archive.open(member) as handle:
+        version = np.lib.format.read_magic(handle)
+        if version not in ((1, 0), (2, 0)):
+            raise CheckpointError(f"{str(path)!r}: {name} is not an array numpy's savez writes")
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = reader(handle)
+        held = member.file_size - handle.tell()
+        if shape != like.shape or dtype != like.dtype or fortran or held != like.nbytes:
+            raise CheckpointError(f"{str(path)!r}: {name} is {dtype}{list(shape)}, the run's buffer "
+                                  f"{like.dtype}{list(like.shape)} (another buffer_size or --n-envs?)")
+        data = handle.read(held)
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
 def load_replay_buffer(model, path: Path) -> None:
     """Fill `model`'s replay buffer (the one its config built) from `save_replay_buffer`'s .npz:
     every array of the same name, shape and dtype, and a position inside the buffer."""
     buffer = model.replay_buffer
     arrays = _buffer_arrays(buffer)
     try:
-        with np.load(path, allow_pickle=False) as saved:
-            if set(saved.files) != set(arrays) | {"__counters__"}:
-                raise CheckpointError(f"{str(path)!r} holds {sorted(saved.files)}, not this run's replay buffer")
-            pos, full = (int(v) for v in saved["__counters__"])
+        with open_regular(path, "replay buffer", CheckpointError) as handle, zipfile.ZipFile(handle) as archive:
+            names = {name.removesuffix(".npy") for name in archive.namelist()}
+            if names != set(arrays) | {"__counters__"}:
+                raise CheckpointError(f"{str(path)!r} holds {sorted(names)}, not this run's replay buffer")
+            counters = _member(archive, "__counters__", np.zeros(2, dtype=np.int64), path)
+            pos, full = (int(v) for v in counters)
             for name, target in arrays.items():
-                member = saved[name]
-                if member.shape != target.shape or member.dtype != target.dtype:
-                    raise CheckpointError(f"{str(path)!r}: {name} is {member.dtype}{list(member.shape)}, the run's "
-                                          f"buffer {target.dtype}{list(target.shape)} (another buffer_size or --n-envs?)")
-                target[...] = member
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        if isinstance(error, CheckpointError):
-            raise
+                target[...] = _member(archive, name, target, path)
+    except CheckpointError:
+        raise
+    except ZIP_ERRORS as error:
         raise CheckpointError(f"cannot read the replay buffer {str(path)!r}: {str(error)[:200]}") from None
     if not (0 <= pos < buffer.buffer_size and full in (0, 1)):
         raise CheckpointError(f"{str(path)!r}: position {pos} is outside the buffer of {buffer.buffer_size}")

@@ -326,6 +326,17 @@ PRETRAIN_KEYS = {
     "dagger_iterations": Integer(1, 20),
     "dagger_beta": FRACTION,
 }
+# The LOOP scripts' keywords (agents/grasps.py): control-block bytes (LCV a signed byte, gains 0..255),
+# encoder counts, strain bytes, seconds; a velocity of 1e9 or a gain of 0.5 is no byte.
+_BYTE, _VELOCITY, _COUNTS = Integer(0, 255), Integer(0, 127), Integer(0, 100_000)
+BASELINE_KWARGS = {
+    **dict.fromkeys(("close_velocity", "squeeze_velocity", "wrap_velocity"), _VELOCITY),
+    **dict.fromkeys(("gain", "close_gain", "hold_gain", "spread_hold_gain", "wrap_gain", "capped_gain",
+                     "strain_limit", "strain_target", "contact_rise"), _BYTE),
+    **dict.fromkeys(("spread", "spread_tolerance", "stall_counts", "stall_cycles"), _COUNTS),
+    **dict.fromkeys(("spread_gain", "squeeze_gain", "limit_gain"), Real(0, 100)),
+    "squeeze_after": Real(0, 60), "lock_stalled": Flag(),
+}
 # The grasp choice's training (agents/choice/trainer.py); its settings are ChoiceSettings' fields,
 # checked by building them (`_check_choice`).
 CHOICE_KEYS = {
@@ -473,8 +484,8 @@ def _check_env_id(env_id: str) -> None:
 
     from bh8_gym.envs import ENV_IDS
 
-    if env_id not in gym.registry:
-        raise ConfigError(f"config: env_id {env_id!r} is not a registered environment (bh8-gym has {', '.join(ENV_IDS)})")
+    if env_id not in gym.registry or env_id not in ENV_IDS:  # another package's env has no LOOP to train
+        raise ConfigError(f"config: env_id {env_id!r} is not a bh8-gym environment ({', '.join(ENV_IDS)})")
 
 
 def _check_env_table(config: dict, table: str) -> None:
@@ -518,6 +529,10 @@ def check_rollout(config: dict, n_envs: int) -> None:
     if not 2 <= n_steps * n_envs <= MAX_ROLLOUT:
         raise ConfigError(f"[hyperparameters] n_steps x n_envs (the rollout) must be in 2..{MAX_ROLLOUT}, got "
                           f"{n_steps} x {n_envs}")
+    batch_size = config.get("hyperparameters", {}).get("batch_size", 64)
+    if batch_size > n_steps * n_envs:
+        raise ConfigError(f"[hyperparameters] batch_size {batch_size} is larger than the rollout it is drawn from "
+                          f"(n_steps x n_envs = {n_steps} x {n_envs})")
 
 
 def _check_pretrain(config: dict) -> None:
@@ -534,11 +549,19 @@ def _check_pretrain(config: dict) -> None:
     if baseline in baselines.LOOP_BASELINES:
         classes = grasps.LOOP_SCRIPTS
         names = [name for name in inspect.signature(classes[baseline]).parameters if name != "env"]
-        keys["baseline_kwargs"] = Table({name: Either((Real(-1e9, 1e9), Flag(), Text())) for name in names})
+        keys["baseline_kwargs"] = Table({name: BASELINE_KWARGS.get(name, Real(-1e6, 1e6)) for name in names})
     keys["teacher"] = ListOf(Text(tuple(grasps.FAMILY)), 1, len(grasps.FAMILY))
     _check_table(config, "pretrain", keys, "")
     if table.get("keep_floor", 0.0) > table.get("keep_weight", 0.0):
         raise ConfigError(f"[pretrain] keep_floor must be in [0, keep_weight], got {table['keep_floor']}")
+    teachers = table.get("teacher")
+    if teachers is None and ({"dagger_iterations", "dagger_beta"} & set(table)):
+        raise ConfigError("[pretrain] dagger_iterations and dagger_beta steer a teacher's DAgger: give a teacher")
+    if teachers is not None and ("baseline" in table or "baseline_kwargs" in table):
+        raise ConfigError("[pretrain] clones either a baseline or a teacher's choice: give baseline or teacher, "
+                          "not both")
+    if teachers is not None and len(set(teachers)) != len(teachers):
+        raise ConfigError(f"[pretrain] teacher names a script twice: {shown(teachers)}")
 
 
 def env_parameters(env_id: str) -> set[str] | None:
@@ -556,14 +579,22 @@ def env_parameters(env_id: str) -> set[str] | None:
 
 def check_env_tables(config: dict) -> None:
     """Build the config's training and evaluation envs once (then close them): the env checks its
-    nested settings and LOOP options itself, and names a bad one."""
+    nested settings and LOOP options itself, and names a bad one; the policy the one trains must
+    act in the other (a `history` on one side only failed at the first evaluation, a rollout in)."""
     from bh8_gym.agents.env_factory import make_env
 
+    spaces = {}
     for table in ("env_kwargs", "eval_env_kwargs"):
         try:
-            make_env(config["env_id"], config.get(table, {})).close()
+            env = make_env(config["env_id"], config.get(table, {}))
         except (TypeError, ValueError, OverflowError) as error:
             raise ConfigError(f"{table}: {error}") from None
+        spaces[table] = (env.observation_space, env.action_space)
+        env.close()
+    if spaces["env_kwargs"] != spaces["eval_env_kwargs"]:
+        raise ConfigError("env_kwargs and eval_env_kwargs give envs of different observations or actions "
+                          f"({spaces['env_kwargs'][0]} against {spaces['eval_env_kwargs'][0]}): a setting such as "
+                          "history must be the same in both")
 
 
 def check_run_metadata(run: Any, where: str) -> None:

@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from bh8_gym.agents.evaluation.baselines import LOOP_BASELINES, make_baseline
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.deployment.policy_io import atomic_write_npz
+from bh8_gym.agents.policy_io import atomic_write_npz
 
 
 @dataclass(frozen=True)

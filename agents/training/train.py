@@ -6,7 +6,9 @@ The run itself is `trainer.Trainer`; its output directory and what --resume cont
 trainer.py's docstring.
 
 Ctrl-C, SIGTERM and SIGHUP stop training at the next env step (after an evaluation in progress):
-a checkpoint, then exit status 128 + the signal number (130, 143, 129). Usage errors exit 2.
+a checkpoint, then exit status 128 + the signal number (130, 143, 129). Usage errors exit 2; a
+worker process that died or failed (an env worker, the evaluation worker) exits 1 with one line,
+every worker ended (bh8_gym.child_processes), and the run goes on from its last checkpoint.
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from bh8_gym.agents.deployment.policy_io import RUN_METADATA_FILE
+from bh8_gym.agents.policy_io import RUN_METADATA_FILE
 from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
 from bh8_gym.agents.training.config_check import (
     ALGORITHMS,
@@ -32,6 +34,8 @@ from bh8_gym.agents.training.config_check import (
 )
 from bh8_gym.agents.training.trainer import CHECKPOINT_DIR, Trainer, TrainingError, TrainingInterrupted, read_run_json
 from bh8_gym.cli import integer_argument
+from bh8_gym.child_processes import WorkerDied
+from bh8_gym.safe_files import read_text_bounded
 
 ENV_CONFIG_NAMES = {"BH8Grasp-v0": "grasp", "BH8FingerReach-v0": "reach"}
 
@@ -58,13 +62,10 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     [hyperparameters], [policy_kwargs]."""
     path = Path(path)
     try:
-        with path.open("rb") as handle:
-            text = handle.read(MAX_CONFIG_BYTES + 1)
-        if len(text) > MAX_CONFIG_BYTES:
-            raise TrainingError(f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES >> 20} MB: not a config")
-        config = tomllib.loads(text.decode())
-    except FileNotFoundError:
-        raise TrainingError(f"config file {str(path)!r} does not exist") from None
+        if not os.path.lexists(path):
+            raise TrainingError(f"config file {str(path)!r} does not exist")
+        # bounded, and a FIFO is refused rather than waited on
+        config = tomllib.loads(read_text_bounded(path, MAX_CONFIG_BYTES, "config file", TrainingError))
     except tomllib.TOMLDecodeError as exc:
         raise TrainingError(f"config file {str(path)!r} is not valid TOML: {exc}") from None
     except RecursionError:
@@ -165,6 +166,9 @@ def run(args: argparse.Namespace) -> int:
     except (TrainingError, ValueError) as exc:
         print(f"bh8 train: {exc}", file=sys.stderr)
         return 2
+    except WorkerDied as exc:  # an env or evaluation worker died or failed (WorkerError, EvaluationWorkerError)
+        print(f"bh8 train: {exc}; the run goes on from its last checkpoint with --resume", file=sys.stderr)
+        return 1
     except TrainingInterrupted as stop:
         print(f"\nbh8 train: {stop}; checkpoint saved in {args.out / CHECKPOINT_DIR} (continue with --resume)",
               file=sys.stderr)
@@ -184,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_choice(args: argparse.Namespace, config: dict, seed: int, log) -> int:
     """`bh8 train` of the grasp choice (agents/choice/trainer.py): labels, selector, validation."""
     from bh8_gym.agents.choice.trainer import POLICY_FILE, ChoiceTrainer
-    from bh8_gym.agents.deployment.policy_io import atomic_write
+    from bh8_gym.agents.policy_io import atomic_write
     from bh8_gym.agents.evaluation.evaluate import percent
 
     if args.timesteps is not None:

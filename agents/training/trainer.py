@@ -30,7 +30,6 @@ a checkpoint, then `TrainingInterrupted` (`bh8 train` exits 128 + the signal num
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import sys
@@ -40,6 +39,7 @@ from pathlib import Path
 from bh8_gym.agents.training.config_check import (
     ACTIVATION_CLASSES,
     MAX_ENVS,
+    MAX_TIMESTEPS,
     check_config,
     check_env_tables,
     check_rollout,
@@ -53,7 +53,7 @@ from bh8_gym.agents.training.checkpoint_file import (
     save_replay_buffer,
 )
 from bh8_gym.agents.env_factory import EnvFactory
-from bh8_gym.agents.deployment.policy_io import RUN_METADATA_FILE, atomic_write
+from bh8_gym.agents.policy_io import RUN_METADATA_FILE, atomic_write
 from bh8_gym.agents.training.pretrain import (
     DEMONSTRATIONS_FILE,
     PretrainSettings,
@@ -70,6 +70,8 @@ from bh8_gym.agents.evaluation.run_files import (
     write_json_atomic,
 )
 from bh8_gym.cli import handling_signals
+from bh8_gym.record_schema import Int, Maybe, Real, Schema
+from bh8_gym.safe_files import SMALL_FILE_LIMIT_BYTES, FileError, read_json_bounded
 from bh8_gym.envs.interfaces import host_options
 
 CHECKPOINT_DIR = "checkpoints"
@@ -101,17 +103,26 @@ def _pretrain_settings(config: dict):
         raise TrainingError(str(error)) from None
 
 
-def read_run_json(path: Path) -> dict:
-    """A run's JSON file (run.json, checkpoints/latest.json); TrainingError names a damaged one."""
+# checkpoints/latest.json: every number is bounded before the run uses it (a total of 1e308 trained
+# past MAX_TIMESTEPS; a string raised a TypeError mid-run).
+CHECKPOINT_STATE = Schema("checkpoint state", required={"num_timesteps": Int(0, MAX_TIMESTEPS)}, optional={
+    "total_timesteps": Int(1, MAX_TIMESTEPS), "next_evaluation": Int(0, 2 * MAX_TIMESTEPS),
+    "best_timesteps": Int(0, MAX_TIMESTEPS), "best_success_rate": Maybe(Real(0.0, 1.0)),
+    "best_mean_return": Maybe(Real(-1e15, 1e15))})
+
+
+def read_run_json(path: Path, schema: Schema | None = None, limit: int = SMALL_FILE_LIMIT_BYTES) -> dict:
+    """A run's JSON file (run.json, checkpoints/latest.json, a sweep trial's), read bounded (a FIFO or
+    a link to /dev/zero is refused, not waited on) and checked by `schema`; TrainingError names a
+    damaged one."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as error:
-        raise TrainingError(f"--resume: cannot read {str(path)!r} ({error}); the run cannot be resumed") from None
-    if not isinstance(data, dict):
-        raise TrainingError(f"--resume: {str(path)!r} holds no JSON object; the run cannot be resumed")
-    return data
+        data = read_json_bounded(path, limit, "run file", constants=True)
+        return (schema or _TABLE).check(data, str(path), FileError)
+    except FileError as error:
+        raise TrainingError(f"--resume: {error}; the run cannot be resumed") from None
 
 
+_TABLE = Schema("JSON object", required={})
 
 
 def _staged(path: Path) -> Path:
@@ -387,7 +398,10 @@ class Trainer:
         state = read_run_json(path)
         if state.get("best_mean_return") == float("-inf"):  # older checkpoints: -1.0 and -Infinity, not null
             state.update(best_success_rate=None, best_mean_return=None)
-        return state
+        try:
+            return CHECKPOINT_STATE.check(state, str(path), TrainingError)
+        except TrainingError as error:
+            raise TrainingError(f"--resume: {error}; the run cannot be resumed") from None
 
     def _restore_best_model(self, state: dict) -> None:
         """best_model.zip as of the checkpoint: an evaluation after it (the run was killed before the
@@ -475,8 +489,14 @@ class Trainer:
                         demonstrations, self.pretrain, rollout_steps=int(model.n_steps) * self.n_envs,
                         seed=self.seed))
                 callbacks.append(StopCallback(self))
-                model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
-                            tb_log_name=self.config["algorithm"])
+                try:
+                    model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=not resume,
+                                tb_log_name=self.config["algorithm"])
+                except BaseException:
+                    # SB3 ends its callbacks only when learn returns: the evaluation worker (which
+                    # ignores the stop signals) would outlive the process's exit; killed here at once.
+                    evaluation.close(graceful=False)
+                    raise
                 self.save_checkpoint(model, evaluation.state)
                 if self.stop_signal is not None:
                     raise TrainingInterrupted(self.stop_signal, int(model.num_timesteps))

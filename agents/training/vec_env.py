@@ -29,9 +29,13 @@ from gymnasium import spaces
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env.base_vec_env import CloudpickleWrapper, VecEnv, VecEnvIndices
 
+from bh8_gym.agents.evaluation.eval_worker import EvaluationWorkerError, last_line
+from bh8_gym.child_processes import in_worker, stop, track
 
-class WorkerError(RuntimeError):
-    """An env in a worker process raised: the message carries the worker's traceback."""
+
+class WorkerError(EvaluationWorkerError):
+    """An env worker process raised (its error's last line in the message, its traceback in
+    `details`) or exited."""
 
 
 def _step(env: gym.Env, action) -> tuple:
@@ -114,6 +118,7 @@ def _worker(remote, parent_remote, env_fns: CloudpickleWrapper, ignore_signals: 
     or ("error", traceback) until "close" or the pipe closes."""
     for signum in ignore_signals:
         signal.signal(signum, signal.SIG_IGN)
+    in_worker()
     parent_remote.close()
     try:
         shard = _Shard(env_fns.var)
@@ -185,6 +190,7 @@ class ShardedVecEnv(VecEnv):
                 process = context.Process(target=_worker, daemon=True, args=(
                     work_remote, remote, CloudpickleWrapper([env_fns[i] for i in shard]), tuple(ignore_signals)))
                 process.start()
+                track(process, f"env worker {len(self.processes) + 1}")
                 work_remote.close()
                 self.remotes.append(remote)
                 self.processes.append(process)
@@ -213,12 +219,13 @@ class ShardedVecEnv(VecEnv):
         except (EOFError, ConnectionResetError):
             raise self._exited(worker) from None
         if status == "error":
-            raise WorkerError(f"env worker {worker + 1} failed:\n{result}")
+            raise WorkerError(f"env worker {worker + 1} failed: {last_line(result)}", details=result)
         return result
 
     def _exited(self, worker: int) -> WorkerError:
         process = self.processes[worker]
         process.join(timeout=1)
+        stop(process, wait=0.0)
         return WorkerError(f"env worker {worker + 1} (pid {process.pid}) exited (exit code {process.exitcode})")
 
     def _call(self, command: str, per_shard: Callable[[int], tuple], shards: Sequence[int] | None = None) -> list:
@@ -309,7 +316,4 @@ class ShardedVecEnv(VecEnv):
         for remote in self.remotes:
             remote.close()
         for process in self.processes:
-            process.join(timeout=10)
-            if process.is_alive():
-                process.terminate()
-                process.join()
+            stop(process)  # they ignore SIGTERM (ignore_signals): SIGKILL after 10 s

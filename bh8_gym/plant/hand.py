@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pybullet as p
 
-from bh8_gym import hand_urdf
+from bh8_gym import hand_urdf, pybullet_files
 from bh8_gym import kinematics as kin
 from bh8_gym.plant.clutch import Clutch
 from bh8_gym.plant.drive_train import DriveTrain
@@ -75,7 +75,8 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         # Implicit cylinders: URDF cylinders otherwise load as polygonal hulls, whose facets make a
         # rolling contact (palm face, fingertips) jump.
         flags = p.URDF_USE_SELF_COLLISION | p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER
-        self.hand_id = p.loadURDF(str(hand_urdf.cached_urdf_path()), position, orientation, flags=flags, physicsClientId=cid)
+        with pybullet_files.written([(hand_urdf.urdf_bytes(), ".urdf")]) as (path,):  # a file only we wrote
+            self.hand_id = p.loadURDF(path, position, orientation, flags=flags, physicsClientId=cid)
         self._joint_index_by_name = {}
         self._link_index_by_name = {"palm": -1}
         for index in range(p.getNumJoints(self.hand_id, physicsClientId=cid)):

@@ -18,6 +18,11 @@ one line, one client at a time, and every open starts a clean session.
   is hung up before anything is read from it or written to it: those clients see the port go (EOF,
   EIO; an open after the mode change fails with EACCES) and may open it again. Nothing they wrote
   reaches the hand, and neither reads the other's replies.
+- Fair: a refused client waits in line (by pid, for WAITING_SECONDS): while it does, a client that
+  had the port in that time is hung up when it opens the device again, and the waiting client is
+  served once it alone holds its pty, even if others opened that pty in the moment before the
+  server closed it to them (their bytes, if they wrote any, would come first). Clients opening and
+  closing the device in a tight loop otherwise took every session, and another never got one.
 - Clients that came and went before the server looked (open, write, close: `echo HI > device`)
   were clients of a closed port: what they wrote reaches the hand, as bytes sent on a line do, and
   the replies go nowhere. A client that opened the same pty after them is served if the events
@@ -42,12 +47,17 @@ import select
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from bh8_gym.serial_server.pty import INPUT_BUFFER_BYTES, PTY_BUFFER_BYTES, OpenWatch, Pty, holders
 
+# How long a refused client counts as waiting for the port (it tries again within that, or has given up).
+WAITING_SECONDS = 2.0
 _IN_USE = ("a second client opened the device while it was in use; the port is exclusive, so that "
            "client was hung up and what it wrote went nowhere")
+_WAITING = ("a client that had the port just now opened it again while another was waiting for it; it was "
+            "hung up so that the other goes first")
 _SHARED = ("clients opened the device at the same moment, before the server could give each its own pty; "
            "that pty was hung up before either was answered (so neither reads the other's replies); open it again")
 
@@ -170,6 +180,8 @@ class PortClients:
         """The session's client closed the device. What it wrote still reaches the hand (as bytes
         sent on a line do), the replies go nowhere, and what the pty held for a reader goes with it."""
         pty, self._session = self._session, None
+        if self._session_client is not None:
+            self._recent[self._session_client] = time.monotonic()
         self._pending_input += pty.waiting
         self._pending_input += pty.read(INPUT_BUFFER_BYTES - len(self._pending_input))
         self._remove_pty(pty)
@@ -242,7 +254,10 @@ class PortClients:
 
     def _settle(self, pty: Pty) -> None:
         """What a pty that clients have opened becomes: the session if one client holds it and the
-        port was free; a closed port's pty if they have all gone; else refused."""
+        port was free; a closed port's pty if they have all gone; else refused. A client that
+        shared its pty with one that left without writing keeps it (the other left nothing in it);
+        and while a refused client waits, the one that just had the port does not get it again
+        (`_jumps_the_queue`)."""
         history = pty.history
         if not pty.held():
             if self._session is None:
@@ -250,19 +265,58 @@ class PortClients:
             else:
                 self._refuse(pty, _IN_USE)
             return
+        pids = holders(pty)
         if self._session is not None:
+            self._queue(pids)
             self._refuse(pty, _IN_USE)
             return
-        if history.closed_since_open or holders(pty) > 1:
+        if len(pids) > 1:
+            self._queue(pids)
             self._refuse(pty, _SHARED)
             return
-        if history.written_before_open:
-            # Its client opened it after others had opened, written and closed it (before the server
-            # looked): their bytes come first in the pty. They are all theirs unless it wrote too.
-            earlier = pty.read(PTY_BUFFER_BYTES)
-            pty.look()
-            if history.written_since_open or history.closed_since_open:
+        if self._jumps_the_queue(pids[0]):
+            self._refuse(pty, _WAITING)
+            return
+        # A client refused before and alone in its pty now is served even if others opened it
+        # meanwhile (clients opening the device in a loop open every pty in the moment before the
+        # server closes it to them: otherwise it never gets a session). Their bytes, if they wrote
+        # any, would come before its own: the price of not starving it.
+        if not self._waited(pids[0]):
+            if history.closed_since_open and history.written_before_close:
+                self._queue(pids)
                 self._refuse(pty, _SHARED)
                 return
-            self._pending_input += earlier[:max(0, INPUT_BUFFER_BYTES - len(self._pending_input))]
+            if history.written_before_open:
+                # Its client opened it after others had opened, written and closed it (before the server
+                # looked): their bytes come first in the pty. They are all theirs unless it wrote too.
+                earlier = pty.read(PTY_BUFFER_BYTES)
+                pty.look()
+                if history.written_since_open or history.closed_since_open:
+                    self._queue(pids)
+                    self._refuse(pty, _SHARED)
+                    return
+                self._pending_input += earlier[:max(0, INPUT_BUFFER_BYTES - len(self._pending_input))]
+        self._waiting.pop(pids[0], None)
+        self._session_client = pids[0]
         self._hand_session_to_client(pty)
+
+    def _waited(self, pid) -> bool:
+        """Whether `pid` was refused within WAITING_SECONDS and has not had the port since."""
+        return pid is not None and pid in self._waiting and pid not in self._recent
+
+    def _queue(self, pids: list) -> None:
+        """Refused clients (by pid) wait for the port: `_jumps_the_queue` keeps it for them."""
+        now = time.monotonic()
+        for pid in pids:
+            if pid is not None:
+                self._waiting[pid] = now
+
+    def _jumps_the_queue(self, pid) -> bool:
+        """Whether `pid` had the port within WAITING_SECONDS while a client that has not was refused
+        in that time and may still be trying: clients opening and closing the device in a tight
+        loop took every session, and another never got one. A client whose pid we cannot see
+        (another user's) is never held back, nor one of several threads of one process."""
+        now = time.monotonic()
+        self._waiting = {other: when for other, when in self._waiting.items() if now - when < WAITING_SECONDS}
+        self._recent = {other: when for other, when in self._recent.items() if now - when < WAITING_SECONDS}
+        return pid in self._recent and any(other not in self._recent for other in self._waiting)

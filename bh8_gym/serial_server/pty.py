@@ -121,6 +121,7 @@ class OpenHistory:
         self.closed_since_open = False
         self.written_before_open = False
         self.written_since_open = False
+        self.written_before_close = False  # since the last open: a write, then a close (whose bytes?)
 
     def add(self, masks: list[int]) -> None:
         for mask in masks:
@@ -128,15 +129,17 @@ class OpenHistory:
                 self.opens += 1
                 self.closes += 1
                 self.closed_since_open = self.written_before_open = self.written_since_open = True
+                self.written_before_close = True
             if mask & OpenWatch.IN_OPEN:
                 self.opens += 1
                 self.written_before_open |= self.written_since_open
-                self.written_since_open = self.closed_since_open = False
+                self.written_since_open = self.closed_since_open = self.written_before_close = False
             if mask & OpenWatch.IN_MODIFY:
                 self.written_since_open = True
             if mask & OpenWatch.IN_CLOSE:
                 self.closes += 1
                 self.closed_since_open = True
+                self.written_before_close |= self.written_since_open
 
 
 class Pty:
@@ -210,16 +213,16 @@ class Pty:
         self.leader = self.follower = -1
 
 
-def descriptors_open_on(device: str) -> int:
-    """How many file descriptors of the processes this user may look into (all, for root) have
-    `device` open, from /proc (0 where there is none). A name that matches is checked to be the
-    same node: a process in another container may have its own /dev/pts with the same numbers."""
+def descriptors_open_on(device: str) -> list[int]:
+    """The pid of each file descriptor that has `device` open, of the processes this user may look
+    into (all, for root), from /proc (empty where there is none). A name that matches is checked to
+    be the same node: a process in another container may have its own /dev/pts with the same numbers."""
     try:
         node = os.stat(device)
         pids = [entry for entry in os.listdir("/proc") if entry.isdigit()]
     except OSError:
-        return 0
-    count = 0
+        return []
+    found = []
     for pid in pids:
         directory = f"/proc/{pid}/fd"
         try:
@@ -230,10 +233,10 @@ def descriptors_open_on(device: str) -> int:
             path = f"{directory}/{descriptor}"
             try:
                 if os.readlink(path) == device and os.path.samestat(os.stat(path), node):
-                    count += 1
+                    found.append(int(pid))
             except OSError:
                 continue
-    return count
+    return found
 
 
 # A descriptor appears in /proc a moment after the open that inotify reported: how often and how
@@ -243,11 +246,12 @@ _DESCRIPTOR_COUNT_TRIES = 5
 _DESCRIPTOR_COUNT_PAUSE_S = 0.002
 
 
-def holders(pty: Pty) -> int:
-    """The number of descriptors a held pty is open on (at least 1)."""
+def holders(pty: Pty) -> list[int | None]:
+    """The pid of each descriptor a held pty is open on (at least one entry; None: a process we
+    cannot see, such as another user's: root may open our ptys)."""
     for _ in range(_DESCRIPTOR_COUNT_TRIES):
-        count = descriptors_open_on(pty.device)
-        if count:
-            return count
+        found = descriptors_open_on(pty.device)
+        if found:
+            return list(found)
         time.sleep(_DESCRIPTOR_COUNT_PAUSE_S)
-    return 1
+    return [None]

@@ -101,6 +101,9 @@ class PtyServer(PortClients):
         self._link_dir: str | None = None
         self._link_identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the --link we made
         self._noted: set[str] = set()
+        self._waiting: dict[int, float] = {}  # refused clients' pids, when each was last refused
+        self._recent: dict[int, float] = {}  # pids of recent sessions, when each ended
+        self._session_client: int | None = None  # the session's pid (None: unknown)
         self.link = None
         try:
             first = self._add_pty()
