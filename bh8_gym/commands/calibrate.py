@@ -76,7 +76,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                      help="fit a log whose excitation stopped early (what it holds; the report says what is missing)")
 
     draw = sub.add_parser("draw", help="write a practice hand: parameters drawn away from the defaults",
-                          description="Write a hand file whose parameters are drawn within ±30 %% of the defaults, "
+                          description="Write a hand file whose parameters are drawn within ±30 % of the defaults, "
                                       "for `bh8 serve --hand-parameters` to stand in for an unknown real hand.")
     draw.add_argument("-o", "--output", type=Path, required=True, help="the hand file to write")
     draw.add_argument("--seed", type=integer_argument(0), default=0, help="seed of the draw (default 0)")
