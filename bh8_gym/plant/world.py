@@ -136,7 +136,7 @@ class World:
         self._renew_contact_pairs()
         self._state = self._saved[state_id].copy()
         self._sent_command = None  # resend the joint motor command and worm windows of the restored state
-        self._sent_windows = {}
+        self._forget_sent_windows()
         position, orientation = self._state.wrist_target
         p.changeConstraint(
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
