@@ -106,6 +106,7 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         self._valid_low, self._valid_high = [math.nan] * NUM_JOINTS, [math.nan] * NUM_JOINTS
         self._unit_masses = [p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)[0] for link in self._links]
         self._com_offset = p.getDynamicsInfo(self.hand_id, -1, physicsClientId=cid)[3]
+        self._com_inverse = p.invertTransform(self._com_offset, (0, 0, 0, 1))  # (wrist_pose)
         # F1 and F2 spread through one motor: a gear constraint keeps their angles equal.
         self._spread_gear = p.createConstraint(
             self.hand_id, self.joint_indices[0], self.hand_id, self.joint_indices[3], p.JOINT_GEAR,
