@@ -1,6 +1,6 @@
 """The ceiling: how much room a grasp chosen per object leaves over the best fixed script.
 
-Runs every script of the ceiling family (agents/ceiling.py: LOOP and squeeze grasps at settings
+Runs every script of the ceiling family (agents/evaluation/ceiling.py: LOOP and squeeze grasps at settings
 spanning closing velocity, gain, spread, strain target and softness; all object-blind) on the same
 episodes of each object set, and prints per set: each script's count, the best single script, the
 best script per object family (an oracle told the family), the union (an oracle told the
@@ -11,7 +11,7 @@ episodes is set beside them and paired with the best single script (exact McNema
 Run: python benchmarks/bench_ceiling.py --sets primitives-test test --episodes 1000 --jobs 2 \
          --out runs/ceiling [--randomize] [--table-contact] [--policy runs/eval/results.json]
 
-`--out` keeps ceiling.json (which script held which episode: `agents.ceiling.load_records`) and
+`--out` keeps ceiling.json (which script held which episode: `agents.evaluation.ceiling.load_records`) and
 ceiling.md (with --randomize: ceiling-randomized.json and .md; with --table-contact,
 ceiling-table-contact.*). Rerunning with the same --out
 reuses the scripts already recorded there and keeps the other sets' records. A --policy report is
@@ -26,8 +26,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from bh8_gym.agents.baselines import FAMILY
-from bh8_gym.agents.ceiling import (
+from bh8_gym.agents.grasps import FAMILY
+from bh8_gym.agents.evaluation.ceiling import (
     LOW_OBJECT_HEIGHT,
     CeilingRecord,
     load_records,
@@ -35,7 +35,7 @@ from bh8_gym.agents.ceiling import (
     save_records,
     summarize_ceiling,
 )
-from bh8_gym.agents.evaluate import paired_comparison
+from bh8_gym.agents.evaluation.evaluate import paired_comparison
 
 
 # The arm's table-contact grasp for objects lower than 3 cm (envs/scenes.py PlacementRanges; off

@@ -193,7 +193,7 @@ def bench_vector(env_id: str, n_envs: int, steps: int, env_kwargs: dict, engine:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    from bh8_gym.agents.vec_env import ShardedVecEnv
+    from bh8_gym.agents.training.vec_env import ShardedVecEnv
 
     vec_env_cls = {"sharded": ShardedVecEnv, "subproc": SubprocVecEnv}[engine]
     vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls, wrapper_class=ContinuousActions,

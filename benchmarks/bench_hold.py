@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
-from bh8_gym.agents.baselines import StalledFingers
+from bh8_gym.agents.grasps import StalledFingers
 from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import Firmware
 from bh8_gym.hand_urdf import KNUCKLE_HEIGHT, PALM_TOP
@@ -81,7 +81,7 @@ CT_MARGIN = 100
 MODES = ("gc", "loop")
 LOOP_CLOSE_VELOCITY, LOOP_GAIN = 100, 255  # LCV (the safety envelope's fastest) and LCPG bytes
 LOOP_GRASP_S = 0.8  # the env's grasp phase (envs.arm.ArmSchedule.grasp_seconds)
-SPREAD_GAIN = 0.1  # LCV bytes per count of spread error (agents.baselines.LoopBaseline)
+SPREAD_GAIN = 0.1  # LCV bytes per count of spread error (agents.grasps.LoopBaseline)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import time
 import tomllib
 from pathlib import Path
 
-from bh8_gym.agents.train import default_config_path
+from bh8_gym.agents.training.train import default_config_path
 
 
 def _config(env_id: str, timesteps: int, folder: Path) -> Path:

@@ -10,7 +10,7 @@ config's (agents/configs/ppo_grasp.toml: 8 envs, rollouts of 8 x 256 steps, mini
 --n-envs, --n-steps and --batch-size change it (the earlier rows of docs/benchmarks.md name them).
 torch runs one thread per process (Trainer sets it). --vec-env subproc runs the envs in SB3's
 SubprocVecEnv, one worker process per env, as bh8 train did before ShardedVecEnv
-(agents/vec_env.py): the same run, for comparison. --cpu also prints where the CPU time of a
+(agents/training/vec_env.py): the same run, for comparison. --cpu also prints where the CPU time of a
 vector step goes, per process (Linux /proc): on a machine with a free core per process the
 training process's share bounds the step rate.
 """
@@ -22,9 +22,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from bh8_gym.agents.config_check import MAX_TIMESTEPS
+from bh8_gym.agents.training.config_check import MAX_TIMESTEPS
 from bh8_gym.agents.env_factory import EnvFactory
-from bh8_gym.agents.train import Trainer, default_config_path, load_config
+from bh8_gym.agents.training.train import default_config_path, load_config
+from bh8_gym.agents.training.trainer import Trainer
 
 
 class MeasuredTrainer(Trainer):
@@ -66,7 +67,7 @@ def timing(trainer: MeasuredTrainer, seconds: dict):
     and the envs' share of the rollouts (ShardedVecEnv's shard in this process)."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents import vec_env
+    from bh8_gym.agents.training import vec_env
 
     def timed(owner, name, key, before=None):
         original = getattr(owner, name)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from bh8_gym.agents.baselines import FAMILY, make_script
+from bh8_gym.agents.grasps import FAMILY, make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.objects import ObjectSpec
 from bh8_gym.rendering import Camera, render_frame

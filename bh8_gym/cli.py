@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import os
 import signal
 import sys
 
@@ -17,11 +18,11 @@ SUBCOMMANDS = {
     "serve": ("bh8_gym.commands.serve", "serve the simulated hand's firmware on a pseudo-terminal"),
     "term": ("bh8_gym.commands.term", "interactive GCL terminal for a real or simulated hand"),
     "render": ("bh8_gym.commands.render", "render the simulated hand to a PNG"),
-    "train": ("bh8_gym.agents.train", "train a grasp policy (PPO or SAC)"),
+    "train": ("bh8_gym.agents.training.train", "train a grasp policy (PPO or SAC)"),
     "sweep": ("bh8_gym.agents.sweep.command", "train seeds and hyperparameters as Ray Tune trials, locally or on a cluster"),
-    "eval": ("bh8_gym.agents.evaluate", "evaluate a policy or a scripted baseline"),
-    "export": ("bh8_gym.agents.export", "export a trained policy to a numpy-only file"),
-    "deploy": ("bh8_gym.agents.deploy", "run a policy closed-loop on a hand over a serial port"),
+    "eval": ("bh8_gym.agents.evaluation.evaluate", "evaluate a policy or a scripted baseline"),
+    "export": ("bh8_gym.agents.deployment.export", "export a trained policy to a numpy-only file"),
+    "deploy": ("bh8_gym.agents.deployment.deploy", "run a policy closed-loop on a hand over a serial port"),
 }
 
 
@@ -109,7 +110,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
+        print(f"\nbh8 {args.command}: interrupted (Ctrl-C)", file=sys.stderr)
         return 130
+    except (Exception, MemoryError, RecursionError) as error:  # noqa: BLE001 - the last line of defence
+        # A failure no check of ours foresaw: one line and exit 1, never a raw traceback (set
+        # BH8_TRACEBACK=1 to see where it came from).
+        if os.environ.get("BH8_TRACEBACK"):
+            raise
+        text = " ".join(str(error).split())[:300] or type(error).__name__
+        print(f"bh8 {args.command}: failed: {type(error).__name__}: {text} (BH8_TRACEBACK=1 shows where)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

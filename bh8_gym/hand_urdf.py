@@ -21,10 +21,7 @@ from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
-import os
 import sys
-import tempfile
 from math import atan2, pi, sqrt
 from pathlib import Path
 
@@ -304,28 +301,11 @@ def default_output_path() -> Path:
     return Path(__file__).resolve().parent.parent / "assets" / "bh8_262.urdf"
 
 
-def cached_urdf_path() -> Path:
-    """A file holding the generated URDF, for PyBullet's loadURDF; works from a wheel (no assets/).
-
-    The file name carries a hash of the text, so a changed generator never loads a stale cache.
-    """
-    text = generate_urdf()
-    digest = hashlib.sha256(text.encode()).hexdigest()[:16]
-    cache_root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "bh8-gym"
-    for directory in (cache_root, Path(tempfile.gettempdir()) / f"bh8-gym-{os.getuid()}"):
-        path = directory / f"bh8_262-{digest}.urdf"
-        if path.is_file() and path.read_text() == text:
-            return path
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-            handle, temporary = tempfile.mkstemp(dir=directory, suffix=".urdf.tmp")
-            with os.fdopen(handle, "w") as stream:
-                stream.write(text)
-            os.replace(temporary, path)  # atomic: parallel processes never read a half-written file
-            return path
-        except OSError:
-            continue
-    raise OSError(f"cannot write the hand URDF cache under {cache_root} or {tempfile.gettempdir()}")
+@functools.lru_cache(maxsize=1)
+def urdf_bytes() -> bytes:
+    """The generated URDF as bytes, made once per process: the plant has PyBullet load it from a file
+    this process writes (`bh8_gym.pybullet_files`), never from a cache another process could change."""
+    return generate_urdf().encode()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,6 +21,7 @@ Entries are scaled to about [-1, 1] like the rest of the observation (loop_inter
 """
 from __future__ import annotations
 
+import copy
 from collections import deque
 from typing import Sequence
 
@@ -72,6 +73,15 @@ class HapticHistory:
         self._contact_time: list[float | None] = [None] * n
         self._blocks: deque = deque(maxlen=LONG_LAG + 1)  # (strains, positions, spread)
         self._elapsed = 0.0
+
+    def copy(self) -> "HapticHistory":
+        """An independent copy (a snapshot of the episode; `BH8LoopEnv.snapshot`). The blocks kept are
+        never changed once observed, so they are shared."""
+        twin = copy.copy(self)
+        twin._peak, twin._rising = self._peak.copy(), self._rising.copy()
+        twin._contact_position, twin._contact_time = self._contact_position.copy(), self._contact_time.copy()
+        twin._blocks = self._blocks.copy()
+        return twin
 
     def observe(self, values: Sequence[int], elapsed: float) -> None:
         """Take one decoded feedback block, received at the host's clock `elapsed`."""

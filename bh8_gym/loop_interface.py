@@ -14,7 +14,7 @@ grasping, the targets for reaching); everything else is common:
   [-1, 1]: LFV × LFVC / 16 (counts per sample, full speed ≈ 14), (LFS − 128) / 128, LFAP / full
   range (17,500 fingers, 3,150 spread: SPEC.md §1), LFDP × LFDPC / 128 (counts; with LFDPC > 1
   up to ±LFDPC), LFT / 1000 (tenths °C; 4.4: /100);
-- the previous action, each datum mapped to [-1, 1] (`wrappers.bytes_to_unit`);
+- the previous action, each datum mapped to [-1, 1] (`action_bytes.bytes_to_unit`);
 - the fraction of the episode's time elapsed (the host's clock since its first block), then the
   task's entries.
 
@@ -30,6 +30,7 @@ from typing import Protocol, Sequence
 import gymnasium as gym
 import numpy as np
 
+from bh8_gym.action_bytes import centres_and_halves
 from bh8_gym.haptic_history import HapticHistory
 from bh8_gym.protocol import BAUD_RATES, BITS_PER_BYTE, REALTIME_PROCESSING_S, SPREAD_MOTOR, seconds_per_byte
 from bh8_gym.realtime_codec import HEADER_CONTROL_FEEDBACK, HEADER_FEEDBACK, LoopLayout, MotorFlags
@@ -40,6 +41,7 @@ VELOCITY_FULL_SCALE = 16.0  # counts per sample: no-load motor speed ≈ 14 coun
 STRAIN_CENTRE = 128.0
 DELTA_FULL_SCALE = 128.0
 TEMPERATURE_SCALE = {"4.3": 1000.0, "4.4": 100.0}  # LFT: tenths of °C on 4.3, whole °C on 4.4
+MAX_EPISODE_SECONDS = 600.0  # our bound on one episode (the envs' are 2-3 s)
 # An episode ends when the host's clock reaches episode_seconds less this (float rounding slack).
 END_TOLERANCE_S = 1e-9
 
@@ -109,8 +111,10 @@ class LoopInterface:
         for name, value in (("lcvc", lcvc), ("lfvc", lfvc), ("lfdpc", lfdpc)):
             if not (isinstance(value, (int, np.integer)) and 1 <= value <= 255):
                 raise ValueError(f"{name} must be an integer 1..255 (Table 4), got {value!r}")
-        if not episode_seconds > 0:
-            raise ValueError(f"episode_seconds must be > 0, got {episode_seconds!r}")
+        if (isinstance(episode_seconds, bool) or not isinstance(episode_seconds, (int, float))
+                or not 0 < episode_seconds <= MAX_EPISODE_SECONDS):
+            # bounded before `episode_steps` loops over it
+            raise ValueError(f"episode_seconds must be in (0, {MAX_EPISODE_SECONDS:g}] s, got {episode_seconds!r:.40}")
         check_switch("lfdpd", lfdpd)
         check_switch("privileged", privileged)
         check_switch("history", history)
@@ -176,9 +180,7 @@ class LoopInterface:
         self._action_shape = self.action_space.shape
         # Plain lists: a handful of values per step, cheaper in Python than in numpy.
         self._low_list, self._high_list = low, high
-        low_f, high_f = np.array(low, np.float64), np.array(high, np.float64)
-        self._action_centres = ((low_f + high_f) / 2.0).tolist()
-        self._action_halves = ((high_f - low_f) / 2.0).tolist()
+        self._action_centres, self._action_halves = centres_and_halves(low, high)
 
     def _build_observation_space(self) -> None:
         """Observation layout, precomputed: a feedback entry is (value - offset) * scale."""
@@ -273,7 +275,7 @@ class LoopInterface:
         # One store of plain floats (cheaper than numpy expressions on ~20 entries); the arithmetic is
         # numpy's float64, term for term, so the float32 observation is bit-identical.
         host = [(v - offset) * scale for v, offset, scale in zip(values, self._fb_offset_list, self._fb_scale_list)]
-        host += [(value - centre) / half  # wrappers.bytes_to_unit
+        host += [(value - centre) / half  # action_bytes.bytes_to_unit
                  for value, centre, half in zip(previous_action, self._action_centres, self._action_halves)]
         host.append(min(elapsed / self.episode_seconds, 1.0))
         host += self.task.values(values, elapsed)
@@ -299,6 +301,8 @@ class LoopInterface:
 
     def episode_steps(self, processing_time: float) -> int:
         """Control blocks after the "A" block until the episode's end, at `processing_time` per cycle."""
+        if not (isinstance(processing_time, (int, float)) and 0 <= processing_time <= MAX_EPISODE_SECONDS):
+            raise ValueError(f"processing_time must be 0 to {MAX_EPISODE_SECONDS:g} s, got {processing_time!r:.40}")
         elapsed = self.next_elapsed(0.0, len(self.start_block), processing_time)
         steps = 0
         while not self.episode_over(elapsed):

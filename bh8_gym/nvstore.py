@@ -26,7 +26,6 @@ import json
 import math
 import os
 import random
-import stat
 import tempfile
 import time
 import warnings
@@ -38,6 +37,7 @@ try:
 except ImportError:  # Windows: no advisory lock
     fcntl = None
 
+from bh8_gym.safe_files import read_bounded
 from bh8_gym.parameters import (
     MOTORS,
     UINT32_MAX,
@@ -272,15 +272,8 @@ class NVStore:
 
 def _read_json(path: Path):
     """The file's JSON; ValueError if it is not a regular file (a FIFO would block the read, a
-    device never end it), is larger than STORE_SIZE_LIMIT, or is not JSON."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    with os.fdopen(fd, "rb") as handle:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise ValueError("not a regular file")
-        data = handle.read(STORE_SIZE_LIMIT + 1)
-    if len(data) > STORE_SIZE_LIMIT:
-        raise ValueError(f"larger than {STORE_SIZE_LIMIT} bytes")
-    return json.loads(data.decode("utf-8"))
+    device never end it), is larger than STORE_SIZE_LIMIT, or is not JSON (`bh8_gym.safe_files`)."""
+    return json.loads(read_bounded(path, STORE_SIZE_LIMIT, "store").decode("utf-8"))
 
 
 def _is_integer(value) -> bool:

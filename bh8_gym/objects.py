@@ -22,10 +22,10 @@ Two string forms build an `ObjectSpec`:
 - object files (env kwarg `object_files`, `bh8 eval --object-files`; `parse_object_file`):
   `PATH.urdf[:SCALE]` or `PATH.obj|stl:SCALE:MASS_KG[:FRICTION]`.
 
-Every object stays within our bounds (OBJECT_*, below), and every mesh is read by `bh8_gym.meshes`
-before PyBullet sees it (a bad face index crashes PyBullet's reader), a URDF's meshes found as
-PyBullet finds them (`bh8_gym.urdfs`): a bad spec or file raises an `ObjectError` (a ValueError)
-naming it, before any physics runs.
+Every object stays within our bounds (OBJECT_*, below). A mesh is read by `bh8_gym.meshes` and a
+URDF by `bh8_gym.urdfs`; PyBullet is given only the clean OBJ and URDF files we write from them
+(`bh8_gym.pybullet_files`), never a byte of the user's (its readers crash on bad input). A bad spec
+or file raises an `ObjectError` (a ValueError) naming it, before any physics runs.
 
 Loading: `ObjectLoader` (the environments) caches collision and visual shapes by
 `ObjectSpec.shape_key`, so an object seen before costs one `createMultiBody` (about 0.2 ms) instead
@@ -44,16 +44,17 @@ import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
 import numpy as np
 import pybullet as p
 
-from bh8_gym.meshes import MESH_SUFFIXES, MeshError, mesh_bounds
+from bh8_gym import pybullet_files
+from bh8_gym.meshes import MESH_SUFFIXES, Mesh, MeshError, read_mesh
 from bh8_gym.plant import HandPlant, PlantError
-from bh8_gym.urdfs import UrdfError, urdf_mesh_files
+from bh8_gym.urdfs import UrdfError, UrdfModel, read_urdf
 
 PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
 FILE_KINDS = ("urdf", "mesh")
@@ -159,8 +160,8 @@ def parse_object_spec(text: str) -> ObjectPlacement:
     try:
         if lowered in PRIMITIVE_KINDS:
             fields.update(kind=lowered, size=_primitive_size(lowered, argument, text))
-        elif lowered.endswith(".urdf"):
-            fields.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0)
+        elif lowered.endswith(".urdf"):  # its own masses unless ;mass= is given
+            fields.update(kind="urdf", path=head, scale=float(argument) if argument else 1.0, mass=None)
         elif lowered.endswith(tuple(MESH_SUFFIXES)):
             fields.update(kind="mesh", path=head, scale=float(argument) if argument else 1.0)
         else:
@@ -237,38 +238,35 @@ def check_object_extents(extents, what: str) -> None:
         raise ObjectError(f"{what} measures {shown} m: each extent must be {low:g} to {high:g} m")
 
 
-def check_mesh_file(path, scale: float) -> None:
-    """ObjectError unless `path` is an OBJ/STL mesh PyBullet reads safely (`bh8_gym.meshes`: a bad
-    face index would crash the process) whose size at `scale` is within OBJECT_EXTENT_RANGE_M."""
+def check_mesh_file(path, scale: float) -> Mesh:
+    """The checked mesh of the OBJ/STL file `path` (`bh8_gym.meshes`), or an ObjectError; its size
+    at `scale` must be within OBJECT_EXTENT_RANGE_M."""
     try:
-        low, high = mesh_bounds(path)
+        mesh = read_mesh(path)
     except MeshError as error:
         raise ObjectError(str(error)) from None
+    low, high = mesh.bounds
     check_object_extents([float(v) for v in (high - low) * scale], f"mesh {str(path)!r} at scale {scale:g}")
+    return mesh
 
 
-def check_urdf_file(path) -> None:
-    """ObjectError unless PyBullet reads the URDF `path` as `bh8_gym.urdfs` does and each OBJ/STL
-    mesh it opens for it is one PyBullet reads safely (`check_mesh_file`'s reader; its size is
-    checked on the loaded body, `check_loaded_object`). `path` is the string given to loadURDF:
-    PyBullet looks for the meshes from it."""
+def check_urdf_file(path) -> UrdfModel:
+    """The checked model of the URDF `path` and its meshes (`bh8_gym.urdfs`), or an ObjectError.
+    Its size is checked on the loaded body (`check_loaded_object`)."""
     try:
-        for mesh in urdf_mesh_files(path):
-            mesh_bounds(mesh)
+        return read_urdf(path)
     except UrdfError as error:
         raise ObjectError(str(error)) from None
-    except MeshError as error:
-        raise ObjectError(f"URDF {str(path)!r}: {error}") from None
 
 
 def check_urdf_object(path, scale: float) -> None:
-    """`check_urdf_file`, then the URDF loaded at `scale` into a scratch PyBullet world and checked
-    by `check_loaded_object`: an ObjectError before any world of ours holds it."""
-    check_urdf_file(path)
+    """`check_urdf_file`, then the URDF we write from it loaded at `scale` into a scratch PyBullet
+    world and checked by `check_loaded_object`: an ObjectError before any world of ours holds it."""
+    model = check_urdf_file(path)
     client = p.connect(p.DIRECT)
     try:
-        with file_errors_named("urdf", path):
-            body = p.loadURDF(str(path), globalScaling=float(scale), physicsClientId=client)
+        with pybullet_files.written(model.files()) as paths, file_errors_named("urdf", path):
+            body = p.loadURDF(paths[-1], globalScaling=float(scale), physicsClientId=client)
         check_loaded_object(client, body, f"URDF {str(path)!r} at scale {scale:g}")
     finally:
         p.disconnect(client)
@@ -332,8 +330,7 @@ class ObjectLoader:
         cached = self._shapes.get(spec.shape_key)
         if cached is not None:
             return cached
-        if spec.kind == "mesh":
-            check_mesh_file(spec.path, spec.scale)  # PyBullet's reader crashes on a bad face index
+        mesh = check_mesh_file(spec.path, spec.scale) if spec.kind == "mesh" else None
         if spec.kind == "box":
             geometry = dict(shapeType=p.GEOM_BOX, halfExtents=[s / 2 for s in spec.size])
         elif spec.kind == "cylinder":
@@ -343,25 +340,31 @@ class ObjectLoader:
         elif spec.kind == "capsule":
             geometry = dict(shapeType=p.GEOM_CAPSULE, radius=spec.size[0] / 2, height=spec.size[1] - spec.size[0])
         else:
-            geometry = dict(shapeType=p.GEOM_MESH, fileName=spec.path, meshScale=[spec.scale] * 3)
-        with file_errors_named(spec.kind, spec.path):
-            collision = p.createCollisionShape(physicsClientId=self.client, **geometry)
-        if collision < 0:
-            raise ObjectError(f"PyBullet could not build a collision shape for {spec!r}")
-        visual = -1
-        if self.visuals:
-            visual_geometry = dict(geometry)
-            if spec.kind == "cylinder" or spec.kind == "capsule":  # createVisualShape's `length` is the `height`
-                visual_geometry["length"] = visual_geometry.pop("height")
-            visual = p.createVisualShape(rgbaColor=spec.rgba, physicsClientId=self.client, **visual_geometry)
+            geometry = dict(shapeType=p.GEOM_MESH, meshScale=[spec.scale] * 3)
+        # A mesh reaches PyBullet as the OBJ we write from it (bh8_gym.meshes), never the user's file.
+        files = [(mesh.obj_bytes, ".obj")] if mesh is not None else []
+        with pybullet_files.written(files) as paths:
+            if paths:
+                geometry["fileName"] = paths[0]
+            with file_errors_named(spec.kind, spec.path):
+                collision = p.createCollisionShape(physicsClientId=self.client, **geometry)
+            if collision < 0:
+                raise ObjectError(f"PyBullet could not build a collision shape for {spec!r}")
+            visual = -1
+            if self.visuals:
+                visual_geometry = dict(geometry)
+                if spec.kind == "cylinder" or spec.kind == "capsule":  # createVisualShape's `length` is the `height`
+                    visual_geometry["length"] = visual_geometry.pop("height")
+                visual = p.createVisualShape(rgbaColor=spec.rgba, physicsClientId=self.client, **visual_geometry)
         self._shapes[spec.shape_key] = (collision, visual)
         self.shapes_created += 1
         return collision, visual
 
     def _load_urdf(self, spec: ObjectSpec, position, orientation, fixed: bool = False) -> int:
-        check_urdf_file(spec.path)
-        with file_errors_named(spec.kind, spec.path):
-            body = p.loadURDF(spec.path, position, orientation, globalScaling=spec.scale, useFixedBase=fixed,
+        model = check_urdf_file(spec.path)
+        # PyBullet reads the URDF and meshes we write from the checked model, never the user's files.
+        with pybullet_files.written(model.files()) as paths, file_errors_named(spec.kind, spec.path):
+            body = p.loadURDF(paths[-1], position, orientation, globalScaling=spec.scale, useFixedBase=fixed,
                               physicsClientId=self.client)
         self.shapes_created += 1  # its own shapes, kept by PyBullet as ours are
         try:
@@ -400,13 +403,12 @@ def add_object(plant: HandPlant, spec: ObjectSpec, position=(0.0, 0.0, 0.1), ori
                fixed: bool = False) -> int:
     """Place `spec` in `plant`'s world by hand (module docstring); returns its PyBullet body id.
 
-    `fixed` makes it immovable (mass 0). A URDF keeps its own masses. ObjectError for a bad pose or
-    file, before PyBullet sees it."""
+    `fixed` makes it immovable (mass 0). A URDF keeps its own masses unless `spec.mass` is given
+    (then its base gets it, as `ObjectLoader.create` does). ObjectError for a bad pose or file, before
+    PyBullet sees it."""
     position, orientation = check_pose(position, orientation)
     if spec.kind in FILE_KINDS:
         _existing_file(spec)
-    if spec.kind == "urdf":
-        spec = replace(spec, mass=None)  # placed by hand, a URDF keeps its own masses
     body = ObjectLoader(plant.client).create(spec, position, orientation, fixed=fixed)
     friction = plant.params.object_friction if spec.friction is None else spec.friction
     for link in range(-1, p.getNumJoints(body, physicsClientId=plant.client)):

@@ -184,7 +184,7 @@ def reach_policy_npz(tmp_path_factory):
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     env = make_env("BH8FingerReach-v0", {})
     try:

@@ -19,13 +19,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bh8_gym.agents.episodes import EpisodeResult
-from bh8_gym.agents.evaluate import (
+from bh8_gym.agents.evaluation.episodes import EpisodeResult
+from bh8_gym.agents.evaluation.evaluate import (
     per_object_table,
     summarize,
     wilson_interval,
 )
-from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError, atomic_write_npz
+from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+from bh8_gym.agents.policy_io import PolicyFileError, atomic_write_npz
 
 REACH = "BH8FingerReach-v0"
 
@@ -91,7 +92,7 @@ def test_summary_and_per_object_table():
 def test_both_tables_print_the_same_rate_for_the_same_episodes():
     """The group table and the per-object table round a rate the same way (85/200 was 42.5 % in one
     and 42 % in the other)."""
-    from bh8_gym.agents.evaluate import group_table, percent
+    from bh8_gym.agents.evaluation.evaluate import group_table, percent
 
     results = [EpisodeResult("mug", i < 85, 1.0, 300, 2.1, None, 150, object_set="test", family="random_urdf")
                for i in range(200)]
@@ -101,7 +102,7 @@ def test_both_tables_print_the_same_rate_for_the_same_episodes():
 
 
 def test_paired_comparison_counts_and_exact_mcnemar_reference_values():
-    from bh8_gym.agents.evaluate import paired_comparison
+    from bh8_gym.agents.evaluation.evaluate import paired_comparison
 
     ours = [True] * 10 + [False] * 5 + [True] * 3
     theirs = [False] * 10 + [False] * 5 + [True] * 3
@@ -116,7 +117,7 @@ def test_paired_comparison_counts_and_exact_mcnemar_reference_values():
 
 @given(st.lists(st.tuples(st.booleans(), st.booleans()), min_size=1, max_size=400))
 def test_paired_comparison_is_symmetric_and_a_probability(pairs):
-    from bh8_gym.agents.evaluate import paired_comparison
+    from bh8_gym.agents.evaluation.evaluate import paired_comparison
 
     ours, theirs = [a for a, _ in pairs], [b for _, b in pairs]
     forward, backward = paired_comparison(ours, theirs), paired_comparison(theirs, ours)
@@ -138,7 +139,7 @@ def test_policy_file_rejects_pickles_and_foreign_files(tmp_path):
     for name in ("foreign.npz", "pickled.npz"):
         with pytest.raises(PolicyFileError):
             NumpyPolicy(tmp_path / name)
-    with pytest.raises(PolicyFileError, match="cannot read"):
+    with pytest.raises(PolicyFileError, match="cannot be read"):
         NumpyPolicy(tmp_path / "missing.npz")
 
 
@@ -146,7 +147,7 @@ def test_policy_file_rejects_pickles_and_foreign_files(tmp_path):
 
 
 def _tiny_reach_config(algorithm: str = "PPO") -> dict:
-    from bh8_gym.agents.train import default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
 
     config = load_config(default_config_path(algorithm, REACH))
     if algorithm == "PPO":
@@ -162,8 +163,8 @@ def _tiny_reach_config(algorithm: str = "PPO") -> dict:
 def test_train_writes_checkpoints_and_resume_continues_the_step_count(tmp_path):
     """PPO on 2 SubprocVecEnv workers: a checkpoint, a best model and an evaluation row; --resume
     continues from the checkpoint's step counter instead of starting again."""
-    from bh8_gym.agents.run_files import read_evaluations
-    from bh8_gym.agents.train import Trainer, TrainingError
+    from bh8_gym.agents.evaluation.run_files import read_evaluations
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _tiny_reach_config("PPO")
     out = tmp_path / "run"
@@ -189,7 +190,7 @@ def test_linear_learning_rate_schedule_decays_to_zero_over_the_run(tmp_path):
     any other string is refused naming the value."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _tiny_reach_config("PPO")
     config["hyperparameters"]["learning_rate"] = "lin_1e-3"
@@ -208,7 +209,7 @@ def test_linear_learning_rate_schedule_decays_to_zero_over_the_run(tmp_path):
 def test_sac_checkpoint_keeps_the_replay_buffer_and_resumes(tmp_path):
     from stable_baselines3 import SAC
 
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _tiny_reach_config("SAC")
     out = tmp_path / "sac"
@@ -235,8 +236,8 @@ def test_cli_train_rejects_contradicting_arguments(tmp_path, capsys):
 def test_cli_export_writes_a_checked_numpy_policy_that_names_its_env(tmp_path, capsys):
     """`bh8 export RUN/final_model.zip`: an .npz beside the model that reproduces SB3's actions and
     carries the run's env id (what `bh8 deploy` needs); a wrong suffix or a missing model exits 2."""
-    from bh8_gym.agents.policy_file import NumpyPolicy
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.training.trainer import Trainer
     from bh8_gym.cli import main
 
     out = tmp_path / "run"
@@ -276,7 +277,8 @@ def _umask() -> int:
 
 
 def test_damaged_npz_is_a_policy_file_error(tmp_path):
-    from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.policy_io import PolicyFileError
 
     path = _export_untrained_reach_policy(tmp_path)
     with np.load(path) as data:
@@ -291,7 +293,8 @@ def test_a_truncated_or_garbled_npz_is_a_policy_file_error(tmp_path, capsys, dam
     """A half-copied or garbled .npz (zip errors, EOFError, or numpy's "allow_pickle" hint for a
     file that is not a zip at all) is a PolicyFileError, and `bh8 eval` a one-line error, exit 2
     (tracebacks before)."""
-    from bh8_gym.agents.policy_file import NumpyPolicy, PolicyFileError
+    from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy
+    from bh8_gym.agents.policy_io import PolicyFileError
     from bh8_gym.cli import main
 
     data = _export_untrained_reach_policy(tmp_path).read_bytes()
@@ -345,7 +348,7 @@ def test_cli_train_refuses_a_config_typo_before_starting_workers(tmp_path, capsy
 
 
 def _config_file(name: str) -> Path:
-    from bh8_gym.agents.train import default_config_path
+    from bh8_gym.agents.training.train import default_config_path
 
     return default_config_path("PPO", REACH).with_name(name)
 
@@ -357,8 +360,9 @@ def test_exported_policy_matches_sb3_actions(tmp_path, algorithm, use_sde):
     from stable_baselines3 import PPO, SAC
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.export import max_action_difference
-    from bh8_gym.agents.policy_file import SB3Policy, export_sb3_policy
+    from bh8_gym.agents.deployment.export import max_action_difference
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.deployment.sb3_file import SB3Policy
 
     env = make_env(REACH, {})
     try:
@@ -391,8 +395,8 @@ def test_stochastic_evaluation_draws_new_gsde_noise_every_episode(tmp_path):
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.episodes import run_episodes
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.evaluation.episodes import run_episodes
+    from bh8_gym.agents.deployment.policy_file import load_policy
 
     env = make_env(REACH, {"randomize": False})
     try:
@@ -411,7 +415,8 @@ def test_sac_with_gsde_is_refused_by_name(tmp_path):
     from stable_baselines3 import SAC
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import PolicyFileError, export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.policy_io import PolicyFileError
 
     env = make_env(REACH, {})
     try:
@@ -434,7 +439,7 @@ def test_export_bakes_in_vecnormalize_statistics(tmp_path):
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     venv = VecNormalize(DummyVecEnv([lambda: make_env(REACH, {})]), norm_reward=False)
     try:
@@ -457,7 +462,7 @@ def _export_untrained_reach_policy(tmp_path, **metadata) -> Path:
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     env = make_env(REACH, metadata.get("env_kwargs", {}))
     try:
@@ -562,11 +567,13 @@ def test_eval_in_two_processes_gives_the_one_process_report(tmp_path):
 
 def test_bh8_eval_imports_no_torch_until_an_sb3_file_needs_it():
     """An exported .npz policy and the scripts evaluate without torch or SB3 (an install without
-    the train extras; agents/policy_file.py): importing bh8 eval and its worker loads neither."""
+    the train extras; agents/deployment/numpy_policy.py): importing bh8 eval and its worker loads
+    neither."""
     import subprocess
     import sys
 
-    code = ("import sys, bh8_gym.agents.evaluate, bh8_gym.agents.eval_worker, bh8_gym.agents.episodes; "
+    code = ("import sys, bh8_gym.agents.evaluation.evaluate, bh8_gym.agents.evaluation.eval_worker, "
+            "bh8_gym.agents.evaluation.episodes; "
             "print(sorted(m for m in ('torch', 'stable_baselines3') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
@@ -600,7 +607,7 @@ def test_training_and_evaluating_a_model_warns_nothing_deprecated(tmp_path):
     lowered" while training with a linear schedule and evaluating the saved model from its file."""
     import warnings
 
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
     from bh8_gym.cli import main
 
     config = _tiny_reach_config("PPO")
@@ -616,7 +623,7 @@ def test_training_and_evaluating_a_model_warns_nothing_deprecated(tmp_path):
 
 
 def test_training_curve_plot(tmp_path):
-    from bh8_gym.agents.evaluate import plot_training_curve
+    from bh8_gym.agents.evaluation.evaluate import plot_training_curve
 
     rows = [{"timesteps": t, "success_rate": s, "success_ci_low": max(s - 0.2, 0), "success_ci_high": min(s + 0.2, 1),
              "mean_return": r} for t, s, r in [(1000, 0.0, -5.0), (2000, 0.4, 1.0), (3000, 0.7, 4.0)]]
@@ -632,10 +639,10 @@ def test_baselines_run_on_the_grasp_env(name):
     """Both scripted grasps close the fingers on the object: strain rises, and an episode holds the
     object or loads all three gauges (which sense the outer joints only: a finger pressing with its
     inner link may not)."""
-    from bh8_gym.agents.baselines import make_baseline
+    from bh8_gym.agents.evaluation.baselines import make_baseline
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.episodes import run_episodes
-    from bh8_gym.agents.evaluate import summarize
+    from bh8_gym.agents.evaluation.episodes import run_episodes
+    from bh8_gym.agents.evaluation.evaluate import summarize
 
     env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False})
     try:
@@ -651,7 +658,7 @@ def test_baselines_run_on_the_grasp_env(name):
 def test_the_supervisory_baseline_episode_ends_with_the_arm_schedule():
     """Its arm starts lifting when GTC returns; its episode must end when that schedule does (as the
     LOOP policies' do), not after the env's 2 s of cycles, which held the object 0.8 s longer."""
-    from bh8_gym.agents.baselines import SupervisoryBaseline
+    from bh8_gym.agents.evaluation.baselines import SupervisoryBaseline
     from bh8_gym.agents.env_factory import make_env
 
     env = make_env("BH8Grasp-v0", {"object_set": "primitives", "randomize": False})
@@ -734,9 +741,9 @@ def test_deploy_stops_safely_on_a_termination_signal(tmp_path, signum):
 def test_deploy_stops_safely_when_the_policy_outputs_nan(tmp_path):
     """A policy that outputs NaN (a diverged network) is a safety stop with the reason logged and
     the zero block sent, not an exception about an out-of-range byte."""
-    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.deployment.deploy import Deployment
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
     from bh8_gym.client import BarrettHand
 
     exported = load_policy(_export_untrained_reach_policy(tmp_path))
@@ -795,9 +802,11 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
     import torch
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.export import max_action_difference
-    from bh8_gym.agents.policy_file import SB3Policy, export_sb3_policy
-    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.deployment.export import max_action_difference
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
+    from bh8_gym.agents.deployment.sb3_file import SB3Policy
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = load_config(default_config_path("PPO", "BH8Grasp-v0"))
     config["asymmetric_critic"] = True
@@ -849,7 +858,8 @@ def test_asymmetric_critic_trains_and_its_actor_uses_host_observations_only(tmp_
 
 
 def test_asymmetric_critic_needs_ppo_and_no_privileged_actor():
-    from bh8_gym.agents.train import Trainer, TrainingError, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = load_config(default_config_path("SAC", "BH8Grasp-v0"))
     config["asymmetric_critic"] = True
@@ -910,7 +920,7 @@ def test_stalled_fingers_follow_the_firmwares_stall_rule_and_stay_stalled():
     """§5.5 case 1 at the default TSTOP, as a host sees it in LFAP: a finger that has closed 1000
     counts and then moved under 10 counts in 30 ms has stalled (and stays so: its worm holds it,
     §9.3.1); one still moving, or standing before it has closed 1000 counts, has not."""
-    from bh8_gym.agents.baselines import StalledFingers
+    from bh8_gym.agents.grasps import StalledFingers
 
     watch = StalledFingers()
     dt = 0.004  # a cycle

@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from bh8_gym.agents.baselines import make_script
+from bh8_gym.agents.grasps import make_script
 from bh8_gym.agents.env_factory import make_env
 from bh8_gym.envs.arm import ArmSchedule
 from bh8_gym.envs.scenes import PlacementRanges

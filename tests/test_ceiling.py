@@ -1,12 +1,12 @@
-"""The ceiling family and its summary (agents/ceiling.py) and the teacher's choice (agents/teacher.py)."""
+"""The ceiling family and its summary (agents/evaluation/ceiling.py) and the teacher's choice (agents/training/teacher.py)."""
 from __future__ import annotations
 
 import json
 
 import pytest
 
-from bh8_gym.agents.baselines import FAMILY
-from bh8_gym.agents.ceiling import CeilingRecord, load_records, save_records, summarize_ceiling
+from bh8_gym.agents.grasps import FAMILY
+from bh8_gym.agents.evaluation.ceiling import CeilingRecord, load_records, save_records, summarize_ceiling
 
 
 def _record():
@@ -63,7 +63,7 @@ def test_records_round_trip_and_refuse_other_episodes(tmp_path):
 def test_the_family_has_a_dozen_object_blind_scripts():
     """Issue 27: at least 12 scripts; every one builds on the grasp env (a wrong setting would be a
     ValueError naming it) and acts from the feedback blocks only."""
-    from bh8_gym.agents.baselines import make_script
+    from bh8_gym.agents.grasps import make_script
     from bh8_gym.agents.env_factory import make_env
 
     assert len(FAMILY) >= 12
@@ -82,10 +82,10 @@ def test_the_family_has_a_dozen_object_blind_scripts():
 
 def test_run_scripts_records_what_bh8_eval_measures():
     """The ceiling runs a script exactly as `bh8 eval --baseline` does: same episodes, same outcomes."""
-    from bh8_gym.agents.baselines import make_baseline
-    from bh8_gym.agents.ceiling import run_scripts
+    from bh8_gym.agents.evaluation.baselines import make_baseline
+    from bh8_gym.agents.evaluation.ceiling import run_scripts
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.episodes import run_episodes
+    from bh8_gym.agents.evaluation.episodes import run_episodes
 
     record = run_scripts(["loop"], "primitives-validation", 2, 20000)
     env = make_env("BH8Grasp-v0", {"object_set": "primitives-validation", "randomize": False})
@@ -98,9 +98,9 @@ def test_run_scripts_records_what_bh8_eval_measures():
 
 
 def test_the_teacher_teaches_objects_alike_alike(monkeypatch):
-    """agents/teacher.choose_scripts: of the scripts that hold an episode, the one that holds most
+    """agents/training/teacher.choose_scripts: of the scripts that hold an episode, the one that holds most
     of that object family; the family's best where none holds it."""
-    from bh8_gym.agents import teacher
+    from bh8_gym.agents.training import teacher
 
     outcomes = {"a": [True, True, False, True, False], "b": [True, False, True, True, False]}
     families = ["box", "box", "box", "sphere", "sphere"]

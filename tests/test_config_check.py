@@ -1,4 +1,4 @@
-"""`bh8 train`'s config checks (agents/config_check.py, issue 32 item 11): every key of every table
+"""`bh8 train`'s config checks (agents/training/config_check.py, issue 32 item 11): every key of every table
 is checked for its type and range before anything is built, and a bad one is named in one line;
 the shipped configs pass; a fuzzed value is either accepted or refused naming its key, never a
 crash; `bh8 train` refuses a bad config with exit 2 and writes nothing; values at the edges of the
@@ -16,8 +16,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bh8_gym.agents import config_check
-from bh8_gym.agents.config_check import ConfigError, check_config
+from bh8_gym.agents.training import config_check
+from bh8_gym.agents.training.config_check import ConfigError, check_config
 from bh8_gym.cli import main
 
 REACH, GRASP = "BH8FingerReach-v0", "BH8Grasp-v0"
@@ -116,7 +116,7 @@ def test_pretrain_needs_the_grasp_env_and_ppo():
 
 
 def test_a_teacher_names_scripts_of_the_ceiling_family():
-    """[pretrain] teacher (agents/teacher.py): a list of the family's scripts, named in the message."""
+    """[pretrain] teacher (agents/training/teacher.py): a list of the family's scripts, named in the message."""
     grasp = _base("PPO", GRASP)
     check_config(_with(grasp, None, "pretrain", {"teacher": ["squeeze-g255", "loop"], "dagger_iterations": 2}))
     with pytest.raises(ConfigError, match=r"^\[pretrain\] teacher must be a list of 1\.\.16 items, each one of "):
@@ -136,12 +136,13 @@ def test_nesting_is_bounded_without_recursion_errors():
 
 
 def test_every_shipped_config_passes():
-    from bh8_gym.agents.baselines import LOOP_BASELINES
-    from bh8_gym.agents.train import load_config
+    from bh8_gym.agents.evaluation.baselines import LOOP_BASELINES
+    from bh8_gym.agents.training.train import load_config
 
-    folder = Path(config_check.__file__).parent / "configs"
+    folder = Path(config_check.__file__).parents[1] / "configs"
     shipped = sorted(folder.glob("*.toml"))
-    assert len(shipped) == 4
+    assert [path.name for path in shipped] == ["graspchoice_grasp.toml", "ppo_grasp.toml", "ppo_reach.toml",
+                                               "sac_grasp.toml", "sac_reach.toml"]
     for path in shipped:
         check_config(load_config(path))
     assert config_check.PRETRAIN_KEYS["baseline"].choices == LOOP_BASELINES
@@ -236,7 +237,7 @@ def test_bh8_train_refuses_a_bad_config_in_one_line_before_writing_anything(tmp_
 def test_values_at_the_edges_of_the_ranges_build_and_train(tmp_path):
     """What the checks accept trains: PPO with the ranges' ends (gamma 1, gae_lambda 0, clip_range 1,
     a one-layer net of width 1, log std -20 and 2) runs its rollouts and updates without an error."""
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     for log_std_init in (-20.0, 2.0):
         config = _base()

@@ -40,12 +40,12 @@ class PolicyTriggeringAtCycle3:
 @pytest.fixture
 def port_never_opened(monkeypatch):
     """Fails the test if deploy gets as far as connecting to the hand."""
-    import bh8_gym.agents.deploy
+    import bh8_gym.agents.deployment.deploy
 
     def refuse(*args, **kwargs):
         raise AssertionError("deploy opened the port before refusing its arguments")
 
-    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    monkeypatch.setattr(bh8_gym.agents.deployment.deploy, "BarrettHand", refuse)
 
 
 @pytest.mark.parametrize("option, value", [
@@ -157,9 +157,9 @@ def test_a_port_failing_mid_run_is_reported_with_its_cycle_and_logged_as_a_stop(
 def test_a_port_failure_names_the_cycle_whose_block_failed(reach_policy_npz, tmp_path):
     """The same with a port object that fails like an unplugged adapter on the third policy block:
     cycles 0 ("A"), 1 and 2 are logged, the failure is at cycle 3, and the port cannot be reopened."""
-    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.deployment.deploy import Deployment
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
     from bh8_gym.client import BarrettHand, HandConnectionError
 
     port = serial.serial_for_url("bh8sim://?seed=0")
@@ -201,9 +201,9 @@ def test_a_hand_silent_mid_run_is_sent_ctrl_c_even_without_an_exit_action(reach_
     """A RealTime block that times out leaves the line's state unknown and the client out of LOOP;
     the hand may still be in LOOP running the last velocities. finish() resyncs, which sends ^C,
     also with --on-exit none (which sent nothing before: a real hand kept moving)."""
-    from bh8_gym.agents.deploy import Deployment
+    from bh8_gym.agents.deployment.deploy import Deployment
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
     from bh8_gym.client import BarrettHand, HandTimeout
 
     port = serial.serial_for_url("bh8sim://?seed=0")
@@ -246,9 +246,9 @@ def test_when_the_stop_block_and_the_ctrl_c_both_fail_the_stop_block_failure_is_
     """finish(): a hand that goes silent at the zero-velocity stop block and stays silent. The
     block's time-out is the safe-exit error (it came first); the failed ^C after it is a note in the
     stop record, not a replacement (before, only the ^C's failure was reported)."""
-    from bh8_gym.agents.deploy import Deployment, error_text
+    from bh8_gym.agents.deployment.deploy import Deployment, error_text
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
     from bh8_gym.client import BarrettHand, HandTimeout
 
     port = serial.serial_for_url("bh8sim://?seed=0")
@@ -355,7 +355,7 @@ def test_deploy_never_loads_pybullet():
     LoopInterface of a policy's env (built from the env id and keyword arguments) load no PyBullet."""
     script = (
         "import sys\n"
-        "import bh8_gym.agents.deploy\n"
+        "import bh8_gym.agents.deployment.deploy\n"
         "from bh8_gym.cli import build_parser\n"
         "from bh8_gym.envs.interfaces import interface_for\n"
         "build_parser(['deploy'])\n"
@@ -398,7 +398,7 @@ def test_deploy_interface_is_the_env_interface():
 _DEPLOY_RECORDING_THE_HAND = """
 import sys
 import bh8_gym.urlhandler
-import bh8_gym.agents.deploy as deploy
+import bh8_gym.agents.deployment.deploy as deploy
 from bh8_gym.cli import main
 
 command, set_baud = deploy.BarrettHand.command, deploy.BarrettHand.set_baud
@@ -473,7 +473,7 @@ class _FillingDisk:
 def test_the_log_keeps_whole_records_when_the_disk_fills(tmp_path):
     """`RecordLog`: a record the disk takes only part of is cut back off the file and its write
     raises ENOSPC; every later record raises too, and the file holds the whole records before it."""
-    from bh8_gym.agents.deploy import RecordLog
+    from bh8_gym.agents.deployment.deploy import RecordLog
 
     path = tmp_path / "log.jsonl"
     records = [{"cycle": index, "control": "43" + "00" * 8} for index in range(20)]

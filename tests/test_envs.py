@@ -22,7 +22,8 @@ from hypothesis.extra.numpy import arrays
 import bh8_gym  # noqa: F401  (registers the environments)
 from bh8_gym.envs import ENV_IDS
 from bh8_gym.envs.randomization import RandomizationRanges, sample_plant_parameters
-from bh8_gym.envs.wrappers import ContinuousActions, bytes_to_unit, unit_to_bytes
+from bh8_gym.action_bytes import bytes_to_unit, unit_to_bytes
+from bh8_gym.envs.wrappers import ContinuousActions
 from bh8_gym.firmware import REALTIME_PROCESSING_S
 from bh8_gym.plant import PlantParameters
 from bh8_gym.realtime_codec import MotorFlags
@@ -179,7 +180,7 @@ def test_a_seed_replays_exactly_whatever_the_env_ran_before():
     episodes: the scripted LOOP grasp on a held-out object gives the same observations in a fresh
     env and in one that grasped another object first. restoreState kept the last episode's contact
     manifolds, and their order changed the solver's; the trajectories parted after ~250 steps."""
-    from bh8_gym.agents.baselines import LoopBaseline
+    from bh8_gym.agents.grasps import LoopBaseline
     from bh8_gym.agents.env_factory import make_env  # the env as `bh8 eval` wraps it
 
     def episode(env, seed):

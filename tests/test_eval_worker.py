@@ -1,4 +1,4 @@
-"""`EvaluationWorker` (agents/eval_worker.py): an evaluation split between this process and a
+"""`EvaluationWorker` (agents/evaluation/eval_worker.py): an evaluation split between this process and a
 worker gives the results of `run_episodes` in one process, in order; a worker that fails is a
 clear error and leaves no stale reply behind.
 """
@@ -9,8 +9,8 @@ import os
 import pytest
 
 from bh8_gym.agents.env_factory import make_env
-from bh8_gym.agents.eval_worker import EvaluationWorker, EvaluationWorkerError, PolicyJob, predictor
-from bh8_gym.agents.episodes import run_episodes
+from bh8_gym.agents.evaluation.eval_worker import EvaluationWorker, EvaluationWorkerError, PolicyJob, predictor
+from bh8_gym.agents.evaluation.episodes import run_episodes
 
 GRASP = "BH8Grasp-v0"
 
@@ -21,7 +21,9 @@ def asymmetric_model(tmp_path_factory):
     host observations only, so the worker must pad them as this process does)."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = load_config(default_config_path("PPO", GRASP))
     config.pop("pretrain", None)
@@ -104,10 +106,11 @@ def test_training_with_several_envs_evaluates_in_two_processes_with_the_one_proc
     gives for the evaluated model in one process."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents import eval_worker
-    from bh8_gym.agents.evaluate import summarize
-    from bh8_gym.agents.run_files import read_evaluations
-    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.evaluation import eval_worker
+    from bh8_gym.agents.evaluation.evaluate import summarize
+    from bh8_gym.agents.evaluation.run_files import read_evaluations
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     split_runs = []
     original_run = eval_worker.EvaluationWorker.run
@@ -132,9 +135,10 @@ def test_training_with_several_envs_evaluates_in_two_processes_with_the_one_proc
 def test_a_trainer_given_one_process_steps_its_envs_and_evaluates_in_this_process_only(tmp_path, monkeypatch):
     """`Trainer(processes=1)` (a `bh8 sweep` trial with cpu=1 and several envs) starts no env worker
     and no evaluation worker: it keeps to the CPUs it was given, and its figures are the same."""
-    from bh8_gym.agents import eval_worker
-    from bh8_gym.agents.run_files import read_evaluations
-    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.evaluation import eval_worker
+    from bh8_gym.agents.evaluation.run_files import read_evaluations
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     split_runs = []
     monkeypatch.setattr(eval_worker.EvaluationWorker, "__init__",

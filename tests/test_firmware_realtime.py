@@ -118,6 +118,21 @@ def test_loop_velocity_moves_the_finger(fw):
     assert end["LFV"] == pytest.approx(25 * 4 / 16, abs=1.5)  # counts per sample, LFVC 1
 
 
+def test_lfv_of_a_free_finger_at_lcv_64_reads_4_counts_per_sample(fw):
+    """SPEC.md §4 (velocity tracking): finger 1 from `1M 4000`, LCV 64 with LCVC 1 is 64/16 = 4 counts
+    per sample (§6.2.1: the LCV datum is 4 bits of integer and 4 of fraction). Under the HCTL's
+    proportional velocity law (§9.2.2) at gain 40 the free finger's speed settles within 0.2 count
+    per sample of that, and LFV, the HCTL's whole counts per sample (§6.2.2, LFVC 1), reads 4 in
+    every block once it has (it read 3: the speed was truncated, 3.98 to 3)."""
+    assert fw.transact(b"1M 4000\r") == b"1M 4000\n\r=> "
+    fw.transact(b"1FSET LCV 1 LCVC 1 LCPG 1 LFV 1 LFVC 1 LFS 0 LFAP 1 LFDP 0\r")
+    fw.transact(b"1LOOP\r")
+    layout = fw.loop_layout
+    lfv = [layout.feedback_by_motor(layout.decode_feedback(fw.transact(layout.encode_control([64, 40]))))[1]["LFV"]
+           for _ in range(40)]
+    assert lfv[10:] == [4] * 30, lfv
+
+
 def test_loop_gain_zero_does_not_move(fw):
     """§6.1 / SPEC.md §5: LCPG 0 means no torque — the finger does not move."""
     fw.transact(b"1LOOP\r")

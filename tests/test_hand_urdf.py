@@ -8,7 +8,7 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from bh8_gym import hand_urdf
+from bh8_gym import hand_urdf, pybullet_files
 from bh8_gym import kinematics as kin
 
 
@@ -21,7 +21,8 @@ def robot():
 def loaded():
     client = p.connect(p.DIRECT)
     flags = p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER  # as the plant loads it
-    body = p.loadURDF(str(hand_urdf.cached_urdf_path()), useFixedBase=False, flags=flags, physicsClientId=client)
+    with pybullet_files.written([(hand_urdf.urdf_bytes(), ".urdf")]) as (path,):
+        body = p.loadURDF(path, useFixedBase=False, flags=flags, physicsClientId=client)
     yield client, body
     p.disconnect(client)
 

@@ -36,7 +36,7 @@ def _export_random_policy(tmp_path_factory, env_kwargs: dict):
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.policy_file import export_sb3_policy
+    from bh8_gym.agents.deployment.numpy_policy import export_sb3_policy
 
     env = make_env(ENV_ID, {"randomize": False, **env_kwargs})
     try:
@@ -131,7 +131,7 @@ def test_deploy_on_served_env_is_byte_identical_to_in_process(policy_path, tmp_p
     (the "A" block and every policy cycle; deploy's extra stop block after the episode aside).
     This policy squeezes past the safety envelope's strain limit: deploy, with its default limits,
     stops the hand (exit 3) after the very block at which the env's episode ends with its safety stop."""
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
 
     env_kwargs = {"randomize": randomize}
     controls, feedbacks, stopped = _evaluate_in_process(load_policy(policy_path), env_kwargs, host_clock=randomize)
@@ -155,7 +155,7 @@ def test_deploy_builds_the_haptic_history_as_the_env_does(history_policy_path, t
     """Contract 2 with `history=True`: deploy keeps its own haptic history from the blocks it
     receives, and every block of its episode equals the in-process episode's, so the history
     (which feeds the policy's every action) is the env's, entry for entry."""
-    from bh8_gym.agents.policy_file import load_policy
+    from bh8_gym.agents.deployment.policy_file import load_policy
 
     env_kwargs = {"randomize": randomize, "history": True}
     controls, feedbacks, stopped = _evaluate_in_process(load_policy(history_policy_path), env_kwargs,

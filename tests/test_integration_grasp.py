@@ -16,7 +16,7 @@ import pytest
 from bh8_gym import hand_urdf
 from bh8_gym.envs.interfaces import grasp_interface
 from bh8_gym.firmware import REALTIME_PROCESSING_S, Firmware
-from bh8_gym.objects import ObjectSpec, add_object
+from bh8_gym.objects import ObjectSpec, add_object, remove_object
 from bh8_gym.plant import HandPlant
 from bh8_gym.simulator import build_firmware, shutdown_firmware
 
@@ -313,6 +313,29 @@ def test_bs_stops_a_finger_at_its_breakaway(bars_fw):
     assert abs(position[2] - breakaway[2]) < 150
     assert position[0] > breakaway[0] + 2000 and position[1] > breakaway[1] + 2000
     assert fw.plant.breakaway_position(3) / 125.0 == pytest.approx(np.degrees(fw.plant.joint_angles()[6]), abs=2.0)
+
+
+def test_a_finger_that_meets_nothing_does_not_break_away(tmp_path):
+    """§9.3.1 ("If the inner finger link, while closing, contacts a target object ... the clutch will
+    disengage"): a breakaway needs something that holds the finger back. After a GC that breaks away
+    on a box (the preload goes, manual §8) and a GO (to OT 0, short of the stop: no new preload), the
+    box is taken away and a GC closes every finger to CT with its clutch engaged. F2 used to break
+    away 8 counts into the close: at its profile's start the HCTL's small duty lets the finger's
+    joints stop and start, and the clutch took that for an impact (issue 42)."""
+    fw = build_firmware(tmp_path, objects=["box:0.06x0.10x0.06;mass=10"])
+    try:
+        command(fw, "HI")
+        command(fw, "GC")
+        assert fget(fw, "GFGET BD")[0] == [1, 1, 1]
+        command(fw, "GO")
+        plant = fw.plant
+        remove_object(plant, p.getBodyUniqueId(p.getNumBodies(physicsClientId=plant.client) - 1, physicsClientId=plant.client))
+        assert [plant.clutch_preload(f) for f in (1, 2, 3)] == [0.0, 0.0, 0.0]
+        command(fw, "GC")
+        detected, position = fget(fw, "GFGET BD P")
+        assert detected == [0, 0, 0] and [abs(c - 17000) < 100 for c in position] == [True] * 3, position
+    finally:
+        shutdown_firmware(fw)
 
 
 def test_a_close_after_a_breakaway_and_an_open_breaks_away_only_at_its_obstacle(tmp_path):

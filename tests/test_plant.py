@@ -122,6 +122,34 @@ def test_breakaway_on_an_inner_link_obstacle_and_reengagement(plant):
     assert plant.clutch_preload(3) > 0.0  # driven against the open stop again
 
 
+def test_the_preload_of_an_open_is_its_own_blow_not_an_earlier_opens():
+    """§9.3.1 and manual §8 (opening against the stop preloads the clutch; docs/modelling.md): the
+    rotor's impact on the open stop is what this open lost there. A finger that slammed open, was
+    unwound (back_off_stop, as HI's move to 0) and driven closed for 8 ms, then opened from 0.5° at
+    5 % duty preloads less than the same open from 1° with no such history: the earlier open's
+    speed is forgotten once the motor turns closed (issue 42; it was remembered for 0.5 s, and gave
+    the preload limit)."""
+    def preload_after_open(history: bool) -> float:
+        with HandPlant(PlantParameters(initial_preload=0.0), seed=0) as plant:
+            angles = np.zeros(8)
+            inner, outer = plant.joint_names.index("f1_inner_joint"), plant.joint_names.index("f1_outer_joint")
+            angles[inner], angles[outer] = radians(8.0 if history else 1.0), radians((8.0 if history else 1.0) / 3)
+            plant.set_joint_angles(angles)
+            if history:
+                plant.set_drive(1, -40000.0, 1.0)
+                run(plant, 0.06)
+                plant.back_off_stop(1, 500.0)
+                plant.set_drive(1, 7000.0, 1.0)
+                run(plant, 0.008)
+            assert plant.joint_angles()[inner] <= radians(1.0)
+            plant.set_drive(1, -40000.0, 0.05)
+            run(plant, 0.12)
+            return plant.clutch_preload(1)
+
+    fresh, after_a_slam = preload_after_open(False), preload_after_open(True)
+    assert 0.5 < after_a_slam <= fresh < PlantParameters().preload_limit
+
+
 @pytest.mark.parametrize("mcv, breaks_away", [(20, False), (35, False), (40, True), (60, True)])
 def test_breakaway_from_mcv_40_up(plant, mcv, breaks_away):
     """Manual §8 troubleshooting ("The TorqueSwitch does not breakaway properly ... The close velocity is
@@ -322,12 +350,26 @@ def test_objects_from_specs_and_urdf_scaling(plant):
     )
     sphere = add_object_from_spec(plant, "sphere:d0.06@0.3,0,0.05")
     capsule = add_object(plant, ObjectSpec("capsule", (0.04, 0.10), friction=None), position=(0.3, 0.2, 0.1))
-    cube = add_object(plant, ObjectSpec("urdf", path=f"{pybullet_data.getDataPath()}/cube_small.urdf", scale=2.0, friction=None),
-                      position=(-0.3, 0, 0.1))
+    cube = add_object(plant, ObjectSpec("urdf", path=f"{pybullet_data.getDataPath()}/cube_small.urdf", scale=2.0, mass=None,
+                                        friction=None), position=(-0.3, 0, 0.1))
     run(plant, 0.5)
     assert plant.object_pose(sphere)[0][2] == pytest.approx(0.03, abs=0.003)  # resting on the table
     assert plant.object_pose(cube)[0][2] == pytest.approx(0.05, abs=0.005)  # 5 cm cube scaled x2 -> 10 cm
     assert plant.object_pose(capsule)[0][2] < 0.1
+
+
+def test_a_placed_urdf_takes_the_mass_its_spec_gives(plant):
+    """Issue 42: `;mass=M` in an `--object` spec (module docstring of bh8_gym.objects: a URDF keeps
+    "its own masses unless `mass` is given") sets the URDF's base mass; without it the file's own
+    mass stays (cube_small.urdf: 0.1 kg). add_object used to drop the given mass."""
+    import pybullet_data
+
+    urdf = f"{pybullet_data.getDataPath()}/cube_small.urdf"
+    heavy = add_object_from_spec(plant, f"{urdf}@0.3,0.3,0.1;mass=0.35")
+    own = add_object_from_spec(plant, f"{urdf}@-0.3,0.3,0.1")
+    assert parse_object_spec(urdf).spec.mass is None
+    assert p.getDynamicsInfo(heavy, -1, physicsClientId=plant.client)[0] == pytest.approx(0.35)
+    assert p.getDynamicsInfo(own, -1, physicsClientId=plant.client)[0] == pytest.approx(0.1)
 
 
 def test_wrist_follows_the_flange_target(plant):

@@ -2,7 +2,7 @@
 says it trusts the file, and a damaged one is refused before the hand is touched.
 
 An SB3 .zip stores non-JSON settings as cloudpickles that SB3's loader unpickles (running their
-code); agents/policy_file.py rebuilds the known ones without unpickling. An exported .npz holds
+code); agents/deployment/sb3_file.py rebuilds the known ones without unpickling. An exported .npz holds
 only arrays (np.load with allow_pickle=False); its layers must chain. `bh8 deploy` exit status 2
 is "a policy deploy refuses" (its --help).
 """
@@ -160,12 +160,12 @@ def _metadata(exported, **changes):
 def _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch) -> str:
     """`bh8 deploy --policy path` exits 2 without opening the port or writing its log (the last
     run's log is left alone); returns its stderr, one line starting "bh8 deploy: "."""
-    import bh8_gym.agents.deploy
+    import bh8_gym.agents.deployment.deploy
 
     def refuse(*args, **kwargs):
         raise AssertionError(f"deploy opened the port for {path}")
 
-    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    monkeypatch.setattr(bh8_gym.agents.deployment.deploy, "BarrettHand", refuse)
     log = tmp_path / "deploy.jsonl"
     capsys.readouterr()
     assert main(["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(log)]) == 2
@@ -182,16 +182,16 @@ def _deploy_refused_before_the_port_opens(path, tmp_path, capsys, monkeypatch) -
     ("action bounds of another size", "action_low has shape (7,)"),
     ("a NaN weight", "not a finite number"),
     ("a negative variance", "not a finite number (or a variance is not positive)"),
-    ("n_layers true", "n_layers must be 1..64, got True"),
-    ("n_layers huge", "n_layers must be 1..64"),
-    ("metadata a list", "metadata is not a JSON object"),
+    ("n_layers true", "n_layers must be an integer in 1..64, got True"),
+    ("n_layers huge", "n_layers must be an integer in 1..64"),
+    ("metadata a list", "metadata is not a policy metadata"),
 ])
 def test_a_damaged_export_is_refused_before_the_hand_is_touched(reach_policy_npz, tmp_path, capsys, monkeypatch, case, message):
     """An .npz whose layer shapes do not chain loaded, ran HI on the hand, then failed at the first
     prediction with numpy's raw matmul error and exit 1, the log without a stop record. The shapes
     (and finiteness) are checked when the file is read: PolicyFileError, `bh8 deploy` exit 2 (a
     policy it refuses) before the port is opened, so the hand never moves."""
-    from bh8_gym.agents.policy_file import PolicyFileError, load_policy
+    from bh8_gym.agents.deployment.policy_file import PolicyFileError, load_policy
 
     with np.load(reach_policy_npz, allow_pickle=False) as data:
         w0, w1 = data["layer0_weight"], data["layer1_weight"]
@@ -265,8 +265,8 @@ def test_a_policy_failing_mid_run_is_a_stop_with_its_record_and_exit_2(reach_pol
     """Whatever still fails in a policy mid-run is a stop like a safety limit: the zero-velocity
     block, ^C and the exit action leave the hand safe, the log's stop record names the cycle and
     the error, and the exit status is 2 (a bad policy). It was a raw traceback, exit 1, no record."""
-    import bh8_gym.agents.deploy as deploy
-    from bh8_gym.agents.policy_file import load_policy
+    import bh8_gym.agents.deployment.deploy as deploy
+    from bh8_gym.agents.deployment.policy_file import load_policy
 
     monkeypatch.setattr(deploy, "load_policy", lambda path, trust=False: _FailingAtCycle(load_policy(path), 3))
     log = tmp_path / "deploy.jsonl"
@@ -420,7 +420,7 @@ def test_an_npz_that_asks_for_more_than_it_holds_is_one_line_exit_2(reach_policy
     with one line, and deploy never opens the port."""
     import io
 
-    import bh8_gym.agents.deploy
+    import bh8_gym.agents.deployment.deploy
 
     def header(shape) -> bytes:
         buffer = io.BytesIO()
@@ -440,7 +440,7 @@ def test_an_npz_that_asks_for_more_than_it_holds_is_one_line_exit_2(reach_policy
     def refuse(*args, **kwargs):
         raise AssertionError("deploy opened the port for a damaged policy")
 
-    monkeypatch.setattr(bh8_gym.agents.deploy, "BarrettHand", refuse)
+    monkeypatch.setattr(bh8_gym.agents.deployment.deploy, "BarrettHand", refuse)
     argv = {"deploy": ["deploy", "--port", "bh8sim://?seed=0", "--policy", str(path), "--log", str(tmp_path / "log")],
             "eval": ["eval", str(path), "--episodes", "1", "--no-progress", "--gif-episodes", "0"]}[command]
     assert main(argv) == 2

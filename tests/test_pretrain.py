@@ -1,4 +1,4 @@
-"""Warm start from a scripted grasp ([pretrain], agents/pretrain.py): the config is checked before
+"""Warm start from a scripted grasp ([pretrain], agents/training/pretrain.py): the config is checked before
 anything runs, the cloned actor acts like the script on its own demonstrations, and a warm-started
 run evaluates the cloned policy at step 0 so it can be kept as the best model."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ GRASP = "BH8Grasp-v0"
 
 
 def _grasp_config(pretrain: dict) -> dict:
-    from bh8_gym.agents.train import default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
 
     config = load_config(default_config_path("PPO", GRASP))
     config["env_kwargs"] = {"object_set": "primitives-train", "randomize": False}
@@ -35,7 +35,7 @@ def _grasp_config(pretrain: dict) -> dict:
     ({"keep_floor": -0.1}, "keep_floor must be in"),
 ])
 def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, message):
-    from bh8_gym.agents.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     with pytest.raises(TrainingError, match=message):
         Trainer(_grasp_config(table), tmp_path / "run", n_envs=1, progress=False)
@@ -43,7 +43,7 @@ def test_a_bad_pretrain_table_is_refused_before_anything_runs(tmp_path, table, m
 
 
 def test_pretrain_needs_ppo(tmp_path):
-    from bh8_gym.agents.train import Trainer, TrainingError
+    from bh8_gym.agents.training.trainer import Trainer, TrainingError
 
     config = _grasp_config({})
     config["algorithm"] = "SAC"
@@ -61,7 +61,7 @@ def test_cloned_actor_acts_like_the_script_on_its_demonstrations():
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.pretrain import PretrainSettings, clone, record
+    from bh8_gym.agents.training.pretrain import PretrainSettings, clone, record
 
     settings = PretrainSettings(baseline="squeeze", episodes=2, epochs=40, seed=5)
     kwargs = {"object_set": "primitives-train", "randomize": False}
@@ -92,8 +92,8 @@ def test_cloned_actor_acts_like_the_script_on_its_demonstrations():
 
 
 def test_a_warm_started_run_evaluates_the_cloned_policy_at_step_zero(tmp_path):
-    from bh8_gym.agents.run_files import read_evaluations
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.evaluation.run_files import read_evaluations
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 2})
     out = tmp_path / "run"
@@ -107,8 +107,8 @@ def test_a_warm_started_run_evaluates_the_cloned_policy_at_step_zero(tmp_path):
 def test_keeping_the_demonstrations_during_rl_and_resuming_with_them(tmp_path):
     """keep_weight > 0: the demonstrations are saved in the run directory, RL's rollouts end with
     cloning minibatches (logged weight decays), and a resumed run reads them back."""
-    from bh8_gym.agents.pretrain import DEMONSTRATIONS_FILE, load_demonstrations
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.training.pretrain import DEMONSTRATIONS_FILE, load_demonstrations
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _grasp_config({"baseline": "squeeze", "episodes": 1, "epochs": 1, "action_noise": 0.1,
                             "keep_weight": 1.0, "keep_batches": 2})
@@ -133,7 +133,7 @@ def test_keeping_the_demonstrations_during_rl_and_resuming_with_them(tmp_path):
 def test_the_cloning_weight_decays_to_its_floor_and_stays_there():
     """keep_floor: the default continued to 1 M steps lost the grasp once the weight had decayed
     to nothing (docs/agents.md); with a floor the weight stops there."""
-    from bh8_gym.agents.pretrain import PretrainSettings, keep_weight_after
+    from bh8_gym.agents.training.pretrain import PretrainSettings, keep_weight_after
 
     settings = PretrainSettings(keep_weight=1.0, keep_decay=0.9, keep_floor=0.3)
     weights = [keep_weight_after(settings, n) for n in range(40)]
@@ -146,7 +146,7 @@ def test_action_noise_disturbs_the_executed_actions_but_records_the_scripts():
     """DART-style demonstrations: with action noise the recorded labels are still the script's
     bytes (a LOOP velocity of exactly 0 while a finger holds appears among them), the episode
     differs from the noiseless one."""
-    from bh8_gym.agents.pretrain import PretrainSettings, record
+    from bh8_gym.agents.training.pretrain import PretrainSettings, record
 
     kwargs = {"object_set": "primitives-train", "randomize": False}
     clean = record(GRASP, kwargs, PretrainSettings(episodes=1, seed=7), gamma=0.99)
@@ -157,14 +157,14 @@ def test_action_noise_disturbs_the_executed_actions_but_records_the_scripts():
 
 
 def test_dagger_labels_the_students_own_states_with_the_teachers_actions():
-    """agents/teacher.py: iteration 0 runs the teacher alone (every executed action is its label);
+    """agents/training/teacher.py: iteration 0 runs the teacher alone (every executed action is its label);
     a later iteration with beta 0 runs the student alone, and the teacher's script, reading the
     same blocks, still labels every step it visits."""
     from stable_baselines3 import PPO
 
     from bh8_gym.agents.env_factory import make_env
-    from bh8_gym.agents.pretrain import PretrainSettings
-    from bh8_gym.agents.teacher import distill
+    from bh8_gym.agents.training.pretrain import PretrainSettings
+    from bh8_gym.agents.training.teacher import distill
 
     kwargs = {"object_set": "primitives-train", "randomize": False, "history": True}
     env = make_env(GRASP, kwargs)

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from bh8_gym.agents.run_files import (
+from bh8_gym.agents.evaluation.run_files import (
     EVALUATION_COLUMNS,
     append_evaluation,
     drop_evaluations_after,

@@ -149,7 +149,7 @@ def test_a_damaged_or_foreign_checkpoint_is_refused_in_one_line(runs, tmp_path, 
 
 
 def test_sac_resumes_its_replay_buffer_from_an_npz(runs, tmp_path):
-    from bh8_gym.agents.train import Trainer, read_run_json
+    from bh8_gym.agents.training.trainer import Trainer, read_run_json
 
     run = _copy(runs["SAC"], tmp_path)
     checkpoints = run / "checkpoints"
@@ -169,7 +169,7 @@ def test_sac_resumes_its_replay_buffer_from_an_npz(runs, tmp_path):
 def test_an_earlier_versions_pickled_replay_buffer_needs_trust_file(runs, tmp_path):
     """latest_replay_buffer.pkl (SB3's pickle, written before the .npz): refused, saying why and how,
     unless --trust-file; a replaced one carrying a payload runs nothing without it."""
-    from bh8_gym.agents.train import Trainer, read_run_json
+    from bh8_gym.agents.training.trainer import Trainer, read_run_json
 
     run = _copy(runs["SAC"], tmp_path)
     checkpoints = run / "checkpoints"

@@ -200,7 +200,7 @@ def test_an_unpaced_server_paces_a_motion_that_never_ends(tmp_path):
 
     from bh8_gym.firmware import Firmware
     from bh8_gym.plant import HandPlant
-    from bh8_gym.virtual_serial import PtyServer
+    from bh8_gym.serial_server import PtyServer
 
     plant = HandPlant(seed=0)
     firmware = Firmware(plant=plant, store_dir=tmp_path / "store", seed=0)

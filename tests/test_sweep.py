@@ -47,13 +47,6 @@ seeds = {seeds}
 TEST_EPISODES = 3
 
 
-@pytest.fixture(autouse=True)
-def _own_seal_key(tmp_path, monkeypatch):
-    """Each test's sweeps seal Ray Tune's state with a key of its own (agents/sweep/state_seal.py), not
-    the account's; subprocesses inherit it."""
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config-home"))
-
-
 def _config(folder: Path, total: int = 4096, eval_freq: int = 1024, seeds: str = "[0, 1]", space: str = "") -> Path:
     path = folder / "tiny.toml"
     path.write_text(TINY.format(total=total, eval_freq=eval_freq, seeds=seeds, space=space))
@@ -85,7 +78,7 @@ def _table(report: str) -> dict[str, dict[str, str]]:
     rows = {}
     for line in lines[2:]:
         cells = [cell.strip() for cell in line.strip("|").split("|")]
-        if len(cells) == len(header) and re.fullmatch(r"[0-9a-f]+_\d+", cells[1]):
+        if len(cells) == len(header) and re.fullmatch(r"t\d{4}|[0-9a-f]+_\d+", cells[1]):
             rows[cells[1]] = dict(zip(header, cells))
     return rows
 

@@ -3,8 +3,10 @@ nesting are one-line usage errors before Ray starts (and before a seed range is 
 --address that is malformed, refused or not a Ray head fails within seconds; a search space that
 can give a config bh8 train refuses is refused; an edited sweep.json cannot move --resume's writes
 out of the folders the command line names; Ctrl-C before any trial has reported exits 130 with
-sweep.md and the resume command; and --resume unpickles Ray Tune's state only under this account's
-seal (a replaced tuner.pkl runs nothing), else only with --trust-file.
+sweep.md and the resume command. Issue 39: --resume restores no pickle at all: it rebuilds the
+sweep from our own JSON records (sweep.json's planned trials, each run directory's trial.json and
+result.json, checked) and never restores Ray Tune's state, so a planted tuner.pkl or
+experiment_state file runs nothing, and a planted symbolic link cannot redirect its writes.
 """
 from __future__ import annotations
 
@@ -51,11 +53,6 @@ net_arch = [16]
 seeds = [0, 1]
 {space}
 """
-
-
-@pytest.fixture(autouse=True)
-def _own_seal_key(tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config-home"))
 
 
 def _config(folder: Path, total: int = 2048, space: str = "") -> Path:
@@ -249,24 +246,85 @@ def test_an_edited_sweep_json_is_checked_like_a_new_sweep(tmp_path, field, value
     assert code == 2 and err.count("\n") == 1 and message in err and "Traceback" not in err, err
 
 
-def test_the_report_reads_trials_that_have_not_reported(tmp_path):
-    """Ray's result of a trial stopped before its first report has no config (result.config is
-    None): the seed comes from the trial's trial.json, or is unknown for one that never started,
-    and the table still lists both (before: KeyError '__trial_index__', exit 1, no sweep.md)."""
-    from bh8_gym.agents.sweep.report import PENDING, STOPPED, collect
-
-    experiment = tmp_path / "experiment"
-    started = experiment / "runs" / "abc_00000_seed7"
-    started.mkdir(parents=True)
-    (started / "trial.json").write_text(json.dumps({"trial_id": "abc_00000", "seed": 7, "space": {}, "attempts": 1,
-                                                    "wall_seconds": 3.0}))
-    results = [SimpleNamespace(path=str(experiment / name), config=None, error=None, metrics={})
-               for name in ("abc_00000", "abc_00001")]
-    records = collect(results, experiment, [7, 8])
-    assert [(r.trial_id, r.seed, r.status) for r in records] == [("abc_00000", 7, STOPPED), ("abc_00001", None, PENDING)]
+def _trial_files(folder: Path, name: str, seed: int, space: dict | None = None, finished: bool = False,
+                 sweep_id: str | None = None) -> Path:
+    sweep_id = sweep_id or json.loads((folder / "sweep.json").read_text())["sweep_id"]
+    run_dir = folder / "runs" / f"{name}_seed{seed}"
+    run_dir.mkdir(parents=True)
+    (run_dir / "trial.json").write_text(json.dumps({"trial_id": name, "seed": seed, "space": space or {},
+                                                    "attempts": 1, "wall_seconds": 3.0, "sweep_id": sweep_id}))
+    if finished:
+        (run_dir / "result.json").write_text(json.dumps({"metrics": {"best_validation_success": 0.5,
+                                                                     "best_mean_return": 1.0},
+                                                         "num_timesteps": 2048, "wall_seconds": 3.0, "attempts": 1,
+                                                         "sweep_id": sweep_id}))
+    return run_dir
 
 
-# -- a real sweep: Ctrl-C before any report, the seal, --resume ------------------------------------
+def test_resume_is_rebuilt_from_our_records_not_from_ray(tmp_path):
+    """The trials are drawn when the sweep starts (sweep.json); --resume launches the ones without a
+    whole result.json, from that record. What a run directory says is checked: a trial.json naming
+    a value the space cannot give, or a result.json that is damaged or holds a string for its step
+    count, is not taken as finished or relaunched as it is (before: latest.json and result.json
+    were read unchecked)."""
+    from bh8_gym.agents.sweep.command import _launches
+    from bh8_gym.agents.sweep.report import COMPLETE, PENDING, STOPPED, collect, started_trials
+    from bh8_gym.agents.sweep.settings import resumed_settings
+
+    folder = _new_sweep_json(tmp_path)
+    settings = resumed_settings(_resume_args(folder))
+    assert [(t["name"], t["seed"]) for t in settings["trials"]] == [("t0000", 0), ("t0001", 1)]
+    assert [trials for trials, _ in _launches(settings)] == [settings["trials"]]
+    _trial_files(folder, "t0000", 0, finished=True)
+    assert [trials for trials, _ in _launches(settings)] == [settings["trials"][1:]]
+    records = collect(settings, {})
+    assert [(r.trial_id, r.seed, r.status) for r in records] == [("t0000", 0, COMPLETE), ("t0001", 1, PENDING)]
+    run_dir = _trial_files(folder, "t0001", 1)
+    assert [r.status for r in collect(settings, {})] == [COMPLETE, STOPPED]
+    for damaged in ("[1, 2]", '{"metrics": {}, "num_timesteps": "2048"}', '{"metrics": {}, "num_timesteps": 1e308}'):
+        (run_dir / "result.json").write_text(damaged)
+        assert [r.status for r in collect(settings, {})] == [COMPLETE, STOPPED], damaged
+    (run_dir / "trial.json").write_text(json.dumps({"trial_id": "t0001", "seed": 1, "sweep_id": settings["sweep_id"],
+                                                    "space": {"hyperparameters.gamma": 7}}))
+    assert [t["name"] for t in started_trials(settings)] == ["t0000"]  # not one this sweep gives
+
+
+def test_a_trial_copied_from_another_sweep_is_not_taken_for_this_ones(tmp_path):
+    """Finding 12: the seal was not tied to its folder, so sealed state copied between two sweeps of
+    one account passed. The records are tied to their sweep now (sweep.json's sweep_id, written
+    into each trial.json and result.json): a run directory from another sweep is refused by
+    --resume (exit 2) and never counted as finished."""
+    from bh8_gym.agents.sweep.report import collect, started_trials
+    from bh8_gym.agents.sweep.settings import resumed_settings
+
+    folder = _new_sweep_json(tmp_path)
+    settings = resumed_settings(_resume_args(folder))
+    _trial_files(folder, "t0000", 0, finished=True, sweep_id="0123456789abcdef")
+    assert started_trials(settings) == [] and collect(settings, {})[0].status != "complete"
+    code, err = _sweep("--resume", folder)
+    assert code == 2 and "another sweep's trial" in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("planted", ["test/t0000_seed0.partial", "runs/t0001_seed1", "validation_curves.png",
+                                     "runs/t0000_seed0/evaluations.csv"])
+def test_a_planted_symlink_is_refused_before_resume_writes_anything(tmp_path, planted):
+    """Issue 39 finding 6: test/<trial>.partial linked to another folder had bh8 eval's report written
+    over that folder's results.json, table.md and eval.txt, with exit 0. A link or special file
+    where --resume writes is now refused at once (exit 2, one line), and nothing is written."""
+    folder = _new_sweep_json(tmp_path)
+    _trial_files(folder, "t0000", 0, finished=True)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "results.json").write_text("precious")
+    link = folder / planted
+    link.parent.mkdir(parents=True, exist_ok=True)
+    link.symlink_to(victim)
+    code, err = _sweep("--resume", folder)
+    assert code == 2 and err.count("\n") == 1 and "symbolic link" in err and planted.split("/")[-1] in err, err
+    assert (victim / "results.json").read_text() == "precious" and os.listdir(victim) == ["results.json"]
+
+
+# -- a real sweep: Ctrl-C before any report, planted pickles, --resume ------------------------------
 
 
 def _sweep_process(log: Path, *arguments) -> subprocess.Popen:
@@ -276,7 +334,11 @@ def _sweep_process(log: Path, *arguments) -> subprocess.Popen:
 
 
 @pytest.mark.timeout(3600)  # two Ray starts and two short trials; the waits are hang guards (conftest.py)
-def test_ctrl_c_before_any_report_then_resume_only_under_the_seal(tmp_path):
+def test_ctrl_c_before_any_report_then_resume_restores_no_pickle(tmp_path):
+    """Issue 39 finding 1: --resume ran a payload swapped into tuner.pkl during the seal check's window,
+    or planted as a newer experiment_state-*.json where the seal saw no file. Now no file of Ray
+    Tune's is ever restored: every pickle and experiment state under the sweep is replaced by a
+    payload, and the resumed sweep finishes without running it."""
     sweep, log = tmp_path / "sweep", tmp_path / "first.log"
     process = _sweep_process(log, "--config", _config(tmp_path, total=1024), "--out", sweep)
     sweep_wait(lambda: list(sweep.glob("runs/*/trial.json")), process, log, sweep)  # a trial has started; none has evaluated yet
@@ -287,30 +349,16 @@ def test_ctrl_c_before_any_report_then_resume_only_under_the_seal(tmp_path):
     assert f"bh8 sweep --resume {sweep}" in text
     report = (sweep / "sweep.md").read_text()
     assert "stopped" in report or "pending" in report
-    assert (sweep / "ray_state.seal.json").is_file() and (sweep / "tuner.pkl").is_file()
 
-    # A replaced tuner.pkl (the issue's attack): refused before Ray starts, its payload never run.
-    marker, original = tmp_path / "ran", (sweep / "tuner.pkl").read_bytes()
-    (sweep / "tuner.pkl").write_bytes(pickle.dumps(Payload(marker)))
-    code, err = _sweep("--resume", sweep)
-    assert not marker.exists() and code == 2 and err.count("\n") == 1, err
-    assert "tuner.pkl changed" in err and "--trust-file" in err
-    (sweep / "tuner.pkl").write_bytes(original)
-    # A file added beside Ray's state, and a seal made with another account's key: refused too.
-    trial_dir = next(path for path in sweep.iterdir() if path.is_dir() and path.name not in ("runs",))
-    (trial_dir / "params.pkl.new").write_bytes(b"x")
-    code, err = _sweep("--resume", sweep)
-    assert code == 2 and "params.pkl.new" in err, err
-    (trial_dir / "params.pkl.new").unlink()
-    key_home = os.environ["XDG_CONFIG_HOME"]
-    os.environ["XDG_CONFIG_HOME"] = str(tmp_path / "another-account")
-    try:
-        code, err = _sweep("--resume", sweep)
-    finally:
-        os.environ["XDG_CONFIG_HOME"] = key_home
-    assert code == 2 and "not made by this account" in err, err
-
+    marker = tmp_path / "ran"
+    payload = pickle.dumps(Payload(marker))
+    pickles = [path for path in sweep.rglob("*") if path.suffix == ".pkl" or path.name.startswith("experiment_state")]
+    assert pickles  # Ray Tune's own state, under ray/
+    for path in [*pickles, sweep / "tuner.pkl", sweep / "experiment_state-2099-01-01_00-00-00.json",
+                 next(sweep.glob("ray/*")) / "tuner.pkl"]:
+        path.write_bytes(payload)
     log = tmp_path / "resumed.log"
     process = _sweep_process(log, "--resume", sweep)
     assert sweep_finish(process, log, sweep) == 0, log.read_text()[-3000:]
+    assert not marker.exists()
     assert "2 complete" in (sweep / "sweep.md").read_text()

@@ -127,7 +127,7 @@ def test_a_kill_during_a_checkpoint_leaves_a_model_and_state_of_the_same_step(tm
     then finishes with no staged or temporary file left."""
     from stable_baselines3 import PPO
 
-    from bh8_gym.agents.train import Trainer
+    from bh8_gym.agents.training.trainer import Trainer
 
     config = _write_config(tmp_path / "tiny.toml", checkpoint_freq=32)
     run = tmp_path / "run"
@@ -204,7 +204,7 @@ def test_resume_accepts_options_that_agree_with_the_run(short_run):
 def test_resume_drops_evaluations_made_after_the_checkpoint(tmp_path):
     """A run killed after an evaluation but before the next checkpoint: the resumed run makes that
     evaluation again, and evaluations.csv holds it once. The summary then names the best model."""
-    from bh8_gym.agents.run_files import read_evaluations
+    from bh8_gym.agents.evaluation.run_files import read_evaluations
 
     config = _write_config(tmp_path / "tiny.toml", eval_freq=32)
     run = tmp_path / "run"
@@ -376,4 +376,4 @@ def test_resume_names_a_damaged_run_file(short_run, tmp_path, damaged):
     shutil.copytree(run, copy)
     (copy / damaged).write_text('{"config": {"algor')
     code, _, err = _train("--resume", "--out", copy, "--timesteps", "64")
-    assert code == 2 and f"cannot read {str(copy / damaged)!r}" in err and "Traceback" not in err
+    assert code == 2 and f"{str(copy / damaged)!r} is not valid JSON" in err and "Traceback" not in err

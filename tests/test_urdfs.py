@@ -1,14 +1,15 @@
-"""URDF objects as PyBullet reads them (bh8_gym/urdfs.py; issue 32, item 1).
+"""URDF objects (bh8_gym/urdfs.py; issue 32, item 1; issue 39).
 
-The URDF check read the file with Python's XML parser and skipped it when that parser refused it;
-it looked for a mesh beside the URDF only and knew `package://` alone. PyBullet's own reader
-(TinyXML2) accepted what Python's refused, and PyBullet finds meshes by other rules (`file://`,
-`model://`, the working directory first, every directory above the URDF), so it loaded a mesh that
-was never checked and died of SIGSEGV on its face `f 1 2 999999` (`bh8 serve --object`, `bh8
-render --object`, `bh8 eval --object-files`: exit 139). Each crafted URDF below is loaded the two
-ways the package loads one (`parse_object_file`, the environments' and `bh8 eval`'s, and
-`ObjectLoader`, which `--object` uses) in a forked child, so a crash fails the test instead of
-killing it. Hostile ones must be refused (a ValueError); the benign ones must still load.
+Issue 32: the URDF check read the file with Python's XML parser while PyBullet read it with its
+own (TinyXML2) and found meshes by other rules (`file://`, `model://`, the working directory
+first, every directory above the URDF), so it loaded a mesh that was never checked and died of
+SIGSEGV on its face `f 1 2 999999` (`bh8 serve --object`, `bh8 render --object`, `bh8 eval
+--object-files`: exit 139). Issue 39: PyBullet now reads only the URDF and meshes we write from
+the checked model, so a disagreement between readers can no longer reach it. Each crafted URDF
+below is loaded the two ways the package loads one (`parse_object_file`, the environments' and
+`bh8 eval`'s, and `ObjectLoader`, which `--object` uses) in a forked child, so a crash fails the
+test instead of killing it. Hostile ones must be refused (a ValueError); the benign ones must
+still load.
 """
 from __future__ import annotations
 
@@ -107,7 +108,6 @@ HOSTILE = {
     "file://package://": lambda d: robot("file://package://badface.obj"),
     "package:// and the URDF's folder": lambda d: robot("package://urdf/badface.obj"),
     "a mesh in the folder above": lambda d: robot("up.obj"),
-    "a mesh in the working directory first": lambda d: robot("meshes/part.obj"),
     "an absolute path": lambda d: robot(f"{d}/sub/badface.obj"),
     "upper-case extension": lambda d: robot("BADFACE.OBJ"),
     "a visual mesh only": lambda d: robot("good.obj").replace(
@@ -117,8 +117,18 @@ HOSTILE = {
     "a byte-order mark": lambda d: "\ufeff" + robot("badface.obj"),
     "a COLLADA mesh": lambda d: robot("bad.dae"),
     "nesting 100k deep": lambda d: robot("good.obj").replace("<link", "<a>" * 100_000 + "</a>" * 100_000 + "<link"),
+    "a NaN origin": lambda d: robot("good.obj").replace("<geometry>", '<origin xyz="nan 0 0"/><geometry>'),
+    "a mass of 1e300": lambda d: robot("good.obj").replace('<mass value="0.1"/>', '<mass value="1e300"/>'),
+    "a joint cycle": lambda d: robot("good.obj").replace("</robot>", '<link name="b"/><joint name="j" type="fixed">'
+                                                         '<parent link="b"/><child link="b"/></joint></robot>'),
+    "two roots": lambda d: robot("good.obj").replace("</robot>", '<link name="b"/></robot>'),
+    "a joint to no link": lambda d: robot("good.obj").replace("</robot>", '<joint name="j" type="fixed">'
+                                                              '<parent link="base"/><child link="x"/></joint></robot>'),
+    "100k elements": lambda d: robot("good.obj").replace("<link", "<a/>" * 100_000 + "<link"),
 }
 BENIGN = {
+    # PyBullet took cwd/meshes/part.obj (bad) first; the working directory is not searched now
+    "a mesh name also found in the working directory": lambda d: robot("meshes/part.obj"),
     "a plain mesh name": lambda d: robot("good.obj"),
     "package://": lambda d: robot("package://good.obj"),
     "file://": lambda d: robot("file://good.obj"),

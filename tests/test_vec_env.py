@@ -1,4 +1,4 @@
-"""`ShardedVecEnv` (agents/vec_env.py): the same envs, steps, resets and infos as SB3's
+"""`ShardedVecEnv` (agents/training/vec_env.py): the same envs, steps, resets and infos as SB3's
 `SubprocVecEnv`, with the first shard of envs in this process and one worker process per further
 shard; a failing or vanished worker is a clear error, never a hang; a training run is the same run.
 """
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from gymnasium import spaces
 
-from bh8_gym.agents.vec_env import ShardedVecEnv, WorkerError, shard_sizes
+from bh8_gym.agents.training.vec_env import ShardedVecEnv, WorkerError, shard_sizes
 
 
 class TinyEnv(gym.Env):
@@ -184,7 +184,8 @@ def test_training_on_sharded_envs_is_the_run_subproc_vec_env_gives(tmp_path):
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
     from bh8_gym.agents.env_factory import EnvFactory
-    from bh8_gym.agents.train import Trainer, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import Trainer
 
     class SubprocTrainer(Trainer):
         def _vec_env(self):

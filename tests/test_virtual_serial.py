@@ -308,7 +308,7 @@ sys.exit(serve(RunawayFirmware()))
 _SERVER_SAVING_COUNTERS_EVERY_HALF_SECOND = """
 import sys
 from bh8_gym.simulator import build_firmware
-from bh8_gym.virtual_serial import PtyServer
+from bh8_gym.serial_server import PtyServer
 
 firmware = build_firmware(sys.argv[1], "4.3", 0, ())
 server = PtyServer(firmware, counter_save_interval=0.5)
@@ -488,7 +488,7 @@ def test_unpaced_server_hears_ctrl_c_during_a_motion_that_never_ends(tmp_path):
     """Without --realtime the server runs a command as fast as it can but looks at the line every
     0.25 simulated s, so ^C aborts a motion that does not end (a long HI here) instead of the server
     running it to its end."""
-    from bh8_gym.virtual_serial import PtyServer
+    from bh8_gym.serial_server import PtyServer
 
     plant, firmware = _hand_with_a_long_hi(tmp_path / "store")
     server = PtyServer(firmware)
@@ -1242,15 +1242,15 @@ _CLIENT_ACTIONS = st.lists(st.tuples(st.integers(0, 3), st.sampled_from(["open",
 @settings(max_examples=300, deadline=None)
 @given(_CLIENT_ACTIONS, st.lists(st.integers(1, 5), max_size=10))
 def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
-    """`_OpenHistory` reads a pty's inotify events (in the order of the clients' opens, writes and
+    """`OpenHistory` reads a pty's inotify events (in the order of the clients' opens, writes and
     closes; inotify merges an event with an identical one before it still unread, and the server
     reads them in batches). Whenever one client holds the pty at the end: if no close came after
     the last open, that client opened after every other had closed; if then nobody wrote before
     that open, every byte in the pty is its own; and if it has written nothing, every byte is the
     others'. The server relies on these to serve it or hang it up."""
-    from bh8_gym.virtual_serial import _OpenHistory, _OpenWatch
+    from bh8_gym.serial_server.pty import OpenHistory, OpenWatch
 
-    mask_of = {"open": _OpenWatch.IN_OPEN, "write": _OpenWatch.IN_MODIFY, "close": _OpenWatch.IN_CLOSE & 0x08}
+    mask_of = {"open": OpenWatch.IN_OPEN, "write": OpenWatch.IN_MODIFY, "close": OpenWatch.IN_CLOSE & 0x08}
     open_clients, events, log = set(), [], []  # log: (client, action) that took effect
     for client, action in actions:
         if (action == "open") == (client in open_clients):
@@ -1262,7 +1262,7 @@ def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
         log.append((client, action))
         if not events or events[-1] != mask_of[action]:  # inotify merges with the last unread event
             events.append(mask_of[action])
-    history, start = _OpenHistory(), 0
+    history, start = OpenHistory(), 0
     for size in drains + [len(events)]:  # read in batches, as the server does
         history.add(events[start:start + size])
         start += size
@@ -1280,3 +1280,52 @@ def test_what_the_events_of_a_pty_say_about_its_clients(actions, drains):
         assert not any(action == "write" and i < last_open for i, (client, action) in enumerate(log))
     if not history.written_since_open:
         assert not any(action == "write" and i > last_open for i, (client, action) in enumerate(log))
+
+
+_HAMMER = """
+import os, sys, time
+device, until = sys.argv[1], time.monotonic() + float(sys.argv[2])
+while time.monotonic() < until:
+    try:
+        os.close(os.open(device, os.O_RDWR | os.O_NOCTTY))
+    except OSError:
+        pass
+"""
+
+
+def test_clients_opening_and_closing_in_a_tight_loop_do_not_starve_another(tmp_path):
+    """Issue 39, finding 11: a client that opens and closes the device in a tight loop kept a second
+    client from ever getting a session (each of its opens was refused: the port in use, or a pty
+    shared with the loop). Now a refused client waits in line: those that just had the port are
+    hung up while it waits, and a pty whose other opener left without writing is the remaining
+    client's. With three such loops, the client gets its session, and only its own reply, in seconds."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    hammers = [subprocess.Popen([sys.executable, "-c", _HAMMER, link.device, "60"]) for _ in range(3)]
+    try:
+        time.sleep(1.0)  # the loop has the port to itself for a while
+        deadline, attempts = time.monotonic() + 20, 0
+        while True:
+            assert time.monotonic() < deadline, f"no session in {attempts} attempts"
+            attempts += 1
+            try:
+                fd = _raw_open(link.device)
+            except OSError:  # EACCES: a pty the server closed to further opens
+                time.sleep(0.05)
+                continue
+            try:
+                os.write(fd, b"1FGET DP\r")
+                data, hung_up = _read_until_hangup(fd, 1.0)
+            except OSError:
+                data, hung_up = b"", True
+            finally:
+                os.close(fd)
+            if not hung_up and data:
+                assert data == b"1FGET DP\n\r8500\n\r=> "
+                break
+            time.sleep(0.05)
+    finally:
+        for hammer in hammers:
+            hammer.kill()
+            hammer.wait()
+        link.close()

@@ -2,7 +2,6 @@
 
 One concept in one package: `command` (the `bh8 sweep` options and `run`), `space` (the config's
 `[sweep]` table), `settings` (sweep.json, new or resumed, checked), `cluster` (resources,
-`--address`, starting Ray), `trial` (one trial: a `Trainer` run in a Ray worker), `report`
-(sweep.md, the curves, the test evaluation) and `state_seal` (the seal on Ray Tune's pickled
-state that `--resume` checks). Nothing is imported here, so importing one of them costs only it.
+`--address`, starting Ray), `trial` (one trial: a `Trainer` run in a Ray worker) and `report`
+(our records of the trials, sweep.md, the curves, the test evaluation). Nothing is imported here, so importing one of them costs only it.
 """

@@ -10,7 +10,7 @@ import re
 import socket
 import threading
 
-from bh8_gym.agents import config_check
+from bh8_gym.agents.training import config_check
 from bh8_gym.agents.sweep.space import SweepConfigError
 
 # The largest amount of a resource one trial may reserve (CPUs, GPUs, memory in bytes, custom units).

@@ -4,16 +4,22 @@ machine or on a Ray cluster; selection on the validation split, one evaluation o
 Each trial is a `bh8 train` run (agents/sweep/trial.py) with its own run directory; the sweep
 directory (`--out`) holds:
 
-    sweep.json              the sweep's fixed settings (config, seeds, space, resources): --resume reads them
+    sweep.json              the sweep's fixed settings (config, seeds, space, resources) and, for a
+                            random/grid search, every trial drawn when it started: --resume reads them
                             (agents/sweep/settings.py)
-    ray_state.seal.json     the seal on Ray Tune's pickled state, made when the sweep stops: --resume
-                            restores that state only under it, or with --trust-file (agents/sweep/state_seal.py)
     sweep.md                every trial (config, seed, best validation success with its 95 % CI, steps,
                             wall time, attempts, status), the spread over seeds, the test evaluation
     validation_curves.png   all trials' validation curves, their median and range
     test/<trial>/           `bh8 eval` report of the chosen model on the test split (made once)
-    runs/<trial>_seed<s>/   the trials' run directories (bh8 train's layout), and Ray Tune's
-                            experiment state, unless --storage puts them elsewhere
+    runs/<trial>_seed<s>/   the trials' run directories (bh8 train's layout), unless --storage puts
+                            them elsewhere
+    ray/                    Ray Tune's own files of each launch, which bh8 never reads
+
+`--resume` restores no pickle: it rebuilds the sweep from our own JSON records (the plan in
+sweep.json; each run directory's trial.json and result.json, checked) and launches a new Ray Tune
+run of the trials that have not finished, each going on from its pickle-free checkpoint. Ray Tune's
+saved state (tuner.pkl and the like, pickles that run code when loaded) is never restored. An
+Optuna search goes on with a new study for the trials it had not started.
 
 Ray is an optional dependency (`pip install "bh8-gym[cluster]"`). Usage errors exit 2; a sweep
 whose trials all finished exits 0 (1 if any failed for good, or the test evaluation did); a sweep
@@ -23,9 +29,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
-from bh8_gym.agents.config_check import MAX_ENVS, MAX_EPISODES, MAX_SEED, MAX_TIMESTEPS
+from bh8_gym.agents.evaluation.bounds import MAX_EPISODES, MAX_SEED
+from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_TIMESTEPS
 from bh8_gym.agents.sweep.cluster import (
     CONNECT_TIMEOUT_S,
     MAX_CPUS,
@@ -44,11 +52,9 @@ from bh8_gym.agents.sweep.settings import (
 from bh8_gym.agents.sweep.space import MAX_SAMPLES, MAX_TRIALS, SweepConfigError, count_trials, tune_domains
 from bh8_gym.cli import integer_argument
 
+RAY_DIR = "ray"  # Ray Tune's own files (never read: --resume restores nothing of Ray's)
 INSTALL_HINT = ('bh8 sweep runs its trials on Ray Tune, which is not installed; install it with\n'
                 '    pip install "bh8-gym[cluster]"        (from a clone: pip install -e ".[cluster]")')
-# Ray Tune's state in the experiment folder is pickles: --resume loads it only under this account's
-# seal (agents/sweep/state_seal.py) or with --trust-file.
-SEAL_FILE = "ray_state.seal.json"
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -100,10 +106,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     faults.add_argument("--resume", type=Path, default=None, metavar="DIR",
                         help="continue the sweep in DIR (stopped by Ctrl-C or a crash): unfinished and failed trials go "
                              "on from their checkpoints; its settings stay those it started with")
-    faults.add_argument("--trust-file", action="store_true",
-                        help="with --resume: load Ray Tune's saved state even if this account's bh8 sweep did not seal "
-                             "it (a sweep killed with kill -9, or a folder from elsewhere). It is pickles, and "
-                             "unpickling runs whatever code is in them: only for a folder you trust (default: refuse)")
     test = parser.add_argument_group("test evaluation (bh8 eval of the chosen model)")
     test.add_argument("--test-episodes", type=integer_argument(1, MAX_EPISODES), default=50,
                       help="episodes per object set (default: %(default)s)")
@@ -115,11 +117,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                       help="evaluate the best N trials on the test split (default: %(default)s)")
 
 
-def _trial_dirname(trial) -> str:
-    """Ray Tune's folder of a trial: its id (sweep_report finds the run directory from it)."""
-    return trial.trial_id
-
-
 def _trainable(settings: dict):
     from ray import tune
 
@@ -128,43 +125,57 @@ def _trainable(settings: dict):
     return tune.with_resources(tune.with_parameters(run_trial, settings=settings), settings["resources"])
 
 
-def _tuner(settings: dict, resume: bool):
+def _tuner(settings: dict, launch: str, trials: list[dict] | None, optuna_trials: int = 0):
+    """A Ray Tune run of `trials` (planned or relaunched ones, by their record), or of `optuna_trials`
+    new Optuna draws (each trained once per seed). Ray Tune keeps its own files under ray/<launch>;
+    nothing of them is ever read back."""
     from ray import tune
 
     from bh8_gym.agents.sweep.trial import METRIC
 
-    experiment = Path(settings["experiment_path"])
-    # A sweep stopped before Ray Tune saved any state (Ray failed to start, Ctrl-C at once) starts anew.
-    if resume and tune.Tuner.can_restore(str(experiment)):
-        # Errored trials go on from their checkpoints too: a resume usually follows a fixed fault.
-        return tune.Tuner.restore(str(experiment), trainable=_trainable(settings), resume_unfinished=True,
-                                  resume_errored=True)
-    space = tune_domains(settings["space"])
-    seeds = settings["seeds"]
-    if settings["search"] == "optuna":
+    search_alg = None
+    if trials is not None:
+        if all(trial["name"] in {t["name"] for t in settings["trials"]} for trial in trials):
+            param_space, num_samples = {"trial": tune.grid_search([trial["name"] for trial in trials])}, 1
+        else:
+            param_space, num_samples = {"fixed": tune.grid_search(trials)}, 1
+    else:
         from ray.tune.search import Repeater
         from ray.tune.search.optuna import OptunaSearch
 
         # Each configuration Optuna proposes is trained once per seed; Optuna sees their mean.
+        seeds = settings["seeds"]
         search_alg = Repeater(OptunaSearch(metric=METRIC, mode="max"), repeat=len(seeds), set_index=True)
-        param_space, num_samples = {"space": space}, settings["samples"] * len(seeds)
-    else:
-        search_alg = None
-        param_space, num_samples = {"seed": tune.grid_search(seeds), "space": space}, settings["samples"]
+        param_space, num_samples = {"space": tune_domains(settings["space"])}, optuna_trials
     return tune.Tuner(
         _trainable(settings),
         param_space=param_space,
         tune_config=tune.TuneConfig(metric=METRIC, mode="max", num_samples=num_samples, search_alg=search_alg,
-                                    max_concurrent_trials=settings["max_concurrent"],
-                                    trial_dirname_creator=_trial_dirname),
-        run_config=tune.RunConfig(name=experiment.name, storage_path=str(experiment.parent), verbose=1,
-                                  failure_config=tune.FailureConfig(max_failures=settings["max_failures"])),
+                                    max_concurrent_trials=settings["max_concurrent"]),
+        run_config=tune.RunConfig(name=launch, storage_path=str(Path(settings["experiment_path"]) / RAY_DIR),
+                                  verbose=1, failure_config=tune.FailureConfig(max_failures=settings["max_failures"])),
     )
+
+
+def _launches(settings: dict) -> list[tuple[list[dict] | None, int]]:
+    """What this run of bh8 sweep launches, from our records: (trials, 0) for a list of trials by
+    their record, (None, n) for n new Optuna configurations. A trial with a result.json is done."""
+    from bh8_gym.agents.sweep.report import started_trials
+
+    started = started_trials(settings, strict=True)
+    if settings["search"] == "random":
+        done = {trial["name"] for trial in started if trial["finished"]}
+        todo = [trial for trial in settings["trials"] if trial["name"] not in done]
+        return [(todo, 0)] if todo else []
+    relaunch = [{key: trial[key] for key in ("name", "seed", "space")} for trial in started if not trial["finished"]]
+    configurations = len({repr(sorted(trial["space"].items())) for trial in started})
+    remaining = settings["samples"] - configurations
+    return ([(relaunch, 0)] if relaunch else []) + ([(None, remaining)] if remaining > 0 else [])
 
 
 def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Path, bool]:
     """Test evaluation of the chosen model(s) (only once every trial has finished), sweep.md, plot."""
-    from bh8_gym.agents.evaluate import DEFAULT_EVALUATION_SETS
+    from bh8_gym.agents.evaluation.evaluate import DEFAULT_EVALUATION_SETS
     from bh8_gym.agents.sweep.report import (
         COMPLETE,
         PENDING,
@@ -178,7 +189,7 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
         ranked,
         test_evaluation,
     )
-    from bh8_gym.agents.policy_file import atomic_write
+    from bh8_gym.agents.policy_io import atomic_write
 
     sweep_dir = Path(settings["sweep_dir"])
     test_arguments = {"episodes": args.test_episodes, "seed": args.test_seed,
@@ -202,45 +213,6 @@ def _report(settings: dict, records, args: argparse.Namespace) -> tuple[list, Pa
     return tests, report, failed
 
 
-def _ours() -> tuple[str, ...]:
-    """What bh8 sweep itself keeps in the experiment folder (the sweep directory unless --storage):
-    Ray Tune reads none of it, so the seal leaves it out."""
-    from bh8_gym.agents.sweep.report import PLOT_FILE, REPORT_FILE, TEST_DIR
-    from bh8_gym.agents.sweep.trial import RUNS_DIR
-
-    return RUNS_DIR, SETTINGS_FILE, SEAL_FILE, REPORT_FILE, PLOT_FILE, TEST_DIR
-
-
-def _check_ray_state(settings: dict, trust: bool) -> None:
-    """Before Ray Tune unpickles a stopped sweep's state: this account's bh8 sweep sealed it and
-    it is unchanged (agents/sweep/state_seal.py), unless the user trusts the folder."""
-    from ray import tune
-
-    from bh8_gym.agents.sweep.state_seal import SealError, check_sealed
-
-    experiment = Path(settings["experiment_path"])
-    if trust or not tune.Tuner.can_restore(str(experiment)):
-        return
-    try:
-        check_sealed(experiment, Path(settings["sweep_dir"]) / SEAL_FILE, skip=_ours())
-    except (SealError, OSError) as error:
-        raise SweepConfigError(
-            f"--resume: Ray Tune's saved state in {str(experiment)!r} is pickles, which run code when loaded, and "
-            f"{error}. If the folder is yours alone (bh8 sweep was killed before it could seal it), resume with "
-            "--trust-file") from None
-
-
-def _seal_ray_state(settings: dict) -> None:
-    """Seal what Ray Tune saved in the experiment folder, so that --resume can load it (a failure is
-    said: the next --resume then needs --trust-file)."""
-    from bh8_gym.agents.sweep.state_seal import SealError, seal
-
-    try:
-        seal(Path(settings["experiment_path"]), Path(settings["sweep_dir"]) / SEAL_FILE, skip=_ours())
-    except (SealError, OSError) as error:
-        print(f"bh8 sweep: cannot seal Ray Tune's state ({error}); --resume will need --trust-file", file=sys.stderr)
-
-
 def run(args: argparse.Namespace) -> int:
     try:
         import ray  # noqa: F401
@@ -248,30 +220,36 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print(INSTALL_HINT, file=sys.stderr)
         return 2
-    from bh8_gym.agents.sweep.report import COMPLETE, ERROR, PENDING, STOPPED, collect
-    from bh8_gym.agents.train import TrainingError
+    from bh8_gym.agents.sweep.report import COMPLETE, ERROR, PENDING, STOPPED, check_folders, collect
+    from bh8_gym.agents.training.trainer import TrainingError
 
     try:
         settings = resumed_settings(args) if args.resume is not None else new_settings(args)
         experiment = Path(settings["experiment_path"])
         if args.resume is not None:
-            _check_ray_state(settings, args.trust_file)
+            check_folders(settings)
+            launches = _launches(settings)
+        else:
+            launches = [(settings["trials"], 0)] if settings["search"] == "random" else [(None, settings["samples"])]
         if args.address:
             check_reachable(args.address)
-        owns_ray = start_ray(args, settings)
+        owns_ray = start_ray(args, settings) if launches else False
         if args.resume is None:
             write_settings(settings)
     except (SweepConfigError, TrainingError, ValueError) as error:
         print(f"bh8 sweep: {error}", file=sys.stderr)
         return 2
     resume_hint = f"continue with bh8 sweep --resume {settings['sweep_dir']}"
+    errors: dict[str, str] = {}
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%f")
     try:
-        tuner = _tuner(settings, resume=args.resume is not None)
         print(f"bh8 sweep: {'resuming ' if args.resume else ''}{count_trials(settings)} trials of "
               f"{settings['config']['algorithm']} on {settings['config']['env_id']} (seeds "
               f"{', '.join(map(str, settings['seeds']))}), {settings['resources']} per trial, "
               f"{'cluster ' + args.address if args.address else 'local Ray'}; runs in {experiment / 'runs'}", flush=True)
-        results = tuner.fit()
+        for number, (trials, optuna_trials) in enumerate(launches):
+            results = _tuner(settings, f"{stamp}-{number}", trials, optuna_trials).fit()
+            errors.update(_errors(results, settings))
     except SweepConfigError as error:
         print(f"bh8 sweep: {error}", file=sys.stderr)
         return 2
@@ -279,13 +257,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nbh8 sweep: stopped; {resume_hint}", file=sys.stderr)
         return 130
     finally:
-        _seal_ray_state(settings)
         if owns_ray:
             import ray
 
             ray.shutdown()
     try:
-        records = collect(results, experiment, settings["seeds"])
+        records = collect(settings, errors)
         tests, report, test_failed = _report(settings, records, args)
     except KeyboardInterrupt:
         print(f"\nbh8 sweep: stopped while writing the report; {resume_hint}", file=sys.stderr)
@@ -303,3 +280,19 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 130
     return 1 if counts[ERROR] or test_failed else 0
+
+
+def _errors(results, settings: dict) -> dict[str, str]:
+    """The trials of one launch that failed for good, by name, with their error's informative line."""
+    from bh8_gym.agents.sweep.report import error_line
+    from bh8_gym.agents.sweep.trial import resolve_trial
+
+    errors = {}
+    for result in results:
+        if result.error is not None and result.config:
+            try:
+                name = resolve_trial(result.config, settings, Path(result.path).name)["name"]
+            except (RuntimeError, StopIteration):
+                continue
+            errors[name] = error_line(result.error)
+    return errors

@@ -6,24 +6,40 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import glob
 import io
-import json
+import math
 import os
 import shutil
+import stat
 import statistics
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.agents.sweep.space import describe
-from bh8_gym.agents.sweep.trial import RESULT_FILE, RUNS_DIR, TRIAL_FILE, run_dir_name, trial_seed
-from bh8_gym.agents.train import BEST_MODEL_FILE, CHECKPOINT_DIR
+from bh8_gym.agents.policy_io import atomic_write
+from bh8_gym.agents.evaluation.run_files import BEST_MODEL_FILE
+from bh8_gym.agents.sweep.space import SweepConfigError, check_trial, describe
+from bh8_gym.agents.sweep.trial import (
+    RESULT_FILE,
+    RUNS_DIR,
+    TRIAL_FILE,
+    TRIAL_RECORD,
+    TRIAL_RESULT,
+    run_dir_name,
+)
+from bh8_gym.agents.training.trainer import CHECKPOINT_DIR, CHECKPOINT_STATE, TrainingError, read_run_json
+from bh8_gym.record_schema import Int, Schema, Table
+from bh8_gym.safe_files import FileError, read_text_bounded
 
 REPORT_FILE = "sweep.md"
 PLOT_FILE = "validation_curves.png"
 TEST_DIR = "test"
+RESULTS_LIMIT_BYTES = 64 << 20  # bh8 eval's results.json: a row per episode
+EVALUATIONS_LIMIT_BYTES = 16 << 20  # evaluations.csv: a row per evaluation, ~100 bytes each
+TEST_RESULTS = Schema("bh8 eval report", required={"by_object_set": Table(), "summary": Table()},
+                      optional={"seed": Int(0, 2**32)})
 # Statuses, in the order sweep.md lists trials that are not complete.
 COMPLETE, ERROR, STOPPED, PENDING = "complete", "error", "stopped", "pending"
 
@@ -54,32 +70,34 @@ class TrialRecord:
         return self.run_dir / BEST_MODEL_FILE
 
 
-def _read_json(path: Path) -> dict | None:
+def _read_json(path: Path, schema) -> dict | None:
+    """A trial's JSON record, read bounded and checked (None: missing or damaged)."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        return read_run_json(path, schema)
+    except TrainingError:
         return None
-    return data if isinstance(data, dict) else None
 
 
 def _read_evaluations(path: Path) -> list[dict[str, float]]:
-    """A run's evaluations.csv rows as floats (none yet: empty). The rows are appended one at a time
-    and a resumed run drops those past its checkpoint, so a row cut short by a kill is left out."""
+    """A run's evaluations.csv rows as finite floats (none yet: empty), read bounded. The rows are
+    appended one at a time and a resumed run drops those past its checkpoint, so a row cut short by
+    a kill, or one that is not numbers, is left out."""
     try:
-        with path.open(newline="") as handle:
-            rows = list(csv.DictReader(handle))
-    except FileNotFoundError:
+        text = read_text_bounded(path, EVALUATIONS_LIMIT_BYTES, "evaluations.csv")
+    except FileError:
         return []
     complete = []
-    for row in rows:
+    for row in csv.DictReader(io.StringIO(text, newline="")):
         try:
-            complete.append({key: float(value) for key, value in row.items()})
+            values = {key: float(value) for key, value in row.items()}
         except (TypeError, ValueError):  # a partial last line: missing fields are None
-            pass
+            continue
+        if all(math.isfinite(value) for value in values.values()) and {"timesteps", "success_rate"} <= set(values):
+            complete.append(values)
     return complete
 
 
-def _error_line(error: BaseException | None) -> str:
+def error_line(error: BaseException | None) -> str:
     """The informative line of a trial's error (the last line of a worker's traceback)."""
     if error is None:
         return ""
@@ -88,52 +106,103 @@ def _error_line(error: BaseException | None) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
-def _trial_params(result, experiment_path: Path) -> tuple[dict, Path | None]:
-    """A trial's draw (seed or Repeater index, "space") and its run directory if it has one. Ray's
-    result carries the draw only once the trial has reported (a trial stopped by Ctrl-C before its
-    first evaluation has not); then the trial.json of its run directory, which the trial writes
-    when it starts."""
-    trial_id = Path(result.path).name
-    found = sorted((Path(experiment_path) / RUNS_DIR).glob(f"{glob.escape(trial_id)}_seed*"))
-    run_dir = found[0] if found else None
-    if result.config:
-        return result.config, run_dir
-    trial = _read_json(run_dir / TRIAL_FILE) if run_dir is not None else None
-    if trial and isinstance(trial.get("seed"), int):
-        return {"seed": trial["seed"], "space": trial.get("space") or {}}, run_dir
-    return {}, run_dir
+def started_trials(settings: dict, strict: bool = False) -> list[dict]:
+    """The trials that have a run directory: {"name", "seed", "space", "finished", "run_dir"}, from
+    their trial.json (checked against the sweep's space and its sweep_id) and whether their
+    result.json is whole and this sweep's. `strict`: a run directory of another sweep (its records
+    copied in) is a SweepConfigError, not left out."""
+    runs = Path(settings["experiment_path"]) / RUNS_DIR
+    found = []
+    for run_dir in sorted(runs.iterdir()) if runs.is_dir() else []:
+        record = _read_json(run_dir / TRIAL_FILE, TRIAL_RECORD)
+        if record is None:
+            continue
+        if record.get("sweep_id") != settings["sweep_id"]:
+            if strict:
+                raise SweepConfigError(f"--resume: {str(run_dir)!r} holds another sweep's trial (its trial.json names "
+                                       "another sweep_id); remove it")
+            continue
+        trial = {"name": record["trial_id"], "seed": record["seed"], "space": record["space"]}
+        try:
+            check_trial(trial, settings, str(run_dir / TRIAL_FILE))
+        except SweepConfigError:
+            continue  # not a trial this sweep gives: never relaunched
+        if run_dir.name != run_dir_name(trial["name"], trial["seed"]):
+            continue
+        result = _read_json(run_dir / RESULT_FILE, TRIAL_RESULT)
+        found.append({**trial, "finished": result is not None and result.get("sweep_id") == settings["sweep_id"],
+                      "run_dir": run_dir})
+    return found
 
 
-def collect(results, experiment_path: Path, seeds: list[int]) -> list[TrialRecord]:
-    """One record per trial of Ray Tune's ResultGrid, its numbers from the run directory."""
+def check_folders(settings: dict) -> None:
+    """Before --resume writes anything: the folders it writes in and every entry of runs/ and test/
+    are what bh8 sweep makes (folders and files), not symbolic links or other special files a
+    planted one could redirect its writes through (test/<trial>.partial once sent bh8 eval's report
+    over another folder's)."""
+    for folder in {Path(settings["sweep_dir"]), Path(settings["experiment_path"])}:
+        entries = [folder, *(folder / name for name in (RUNS_DIR, TEST_DIR, REPORT_FILE, PLOT_FILE))]
+        for top in (RUNS_DIR, TEST_DIR):
+            if (folder / top).is_dir() and not (folder / top).is_symlink():
+                entries += [path for run_dir in (folder / top).iterdir()
+                            for path in [run_dir, *(run_dir.iterdir() if _plain_folder(run_dir) else [])]]
+        for path in entries:
+            try:
+                mode = os.lstat(path).st_mode
+            except FileNotFoundError:
+                continue
+            if not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
+                raise SweepConfigError(f"--resume: {str(path)!r} is a symbolic link or special file, which bh8 sweep "
+                                       "never makes; remove it")
+
+
+def _plain_folder(path: Path) -> bool:
+    return stat.S_ISDIR(os.lstat(path).st_mode)
+
+
+def collect(settings: dict, errors: dict[str, str]) -> list[TrialRecord]:
+    """One record per trial of the sweep from our own records: a random/grid sweep's plan, or an
+    Optuna sweep's started trials and the rest pending; `errors`: this run's trials that failed for
+    good (by name). A trial's numbers come from its run directory."""
+    experiment = Path(settings["experiment_path"])
+    started = {trial["name"]: trial for trial in started_trials(settings)}
+    if settings["search"] == "random":
+        planned = settings["trials"]
+    else:
+        planned = list(started.values())
+        configurations = len({repr(sorted(trial["space"].items())) for trial in planned})
+        missing = max(0, settings["samples"] - configurations) * len(settings["seeds"])
+        planned += [{"name": f"(not started {index + 1})", "seed": None, "space": {}} for index in range(missing)]
     records = []
-    for result in results:
-        trial_id = Path(result.path).name
-        params, found = _trial_params(result, experiment_path)
-        seed = trial_seed(params, seeds)
-        run_dir = (Path(experiment_path) / RUNS_DIR / run_dir_name(trial_id, seed) if seed is not None
-                   else found or Path(experiment_path) / RUNS_DIR / trial_id)
-        final = _read_json(run_dir / RESULT_FILE)
-        trial = _read_json(run_dir / TRIAL_FILE) or {}
+    for trial in planned:
+        name, seed = trial["name"], trial["seed"]
+        run_dir = experiment / RUNS_DIR / (run_dir_name(name, seed) if seed is not None else name)
+        final = _read_json(run_dir / RESULT_FILE, TRIAL_RESULT) if seed is not None else None
+        record = _read_json(run_dir / TRIAL_FILE, TRIAL_RECORD) if seed is not None else None
+        if final is not None and final.get("sweep_id") != settings["sweep_id"]:
+            final = None  # another sweep's result: not this trial's
+        if record is not None and record.get("sweep_id") != settings["sweep_id"]:
+            record = None
         if final is not None:
             status = COMPLETE
-        elif result.error is not None:
+        elif name in errors:
             status = ERROR
         else:
-            status = STOPPED if run_dir.exists() else PENDING
-        evaluations = _read_evaluations(run_dir / "evaluations.csv")
+            status = STOPPED if name in started else PENDING
+        evaluations = _read_evaluations(run_dir / "evaluations.csv") if seed is not None else []
         if final is not None:
-            steps = int(final["num_timesteps"])
+            steps = final["num_timesteps"]
         else:  # the last checkpoint's step: what a resumed run starts from
-            checkpoint = _read_json(run_dir / CHECKPOINT_DIR / "latest.json") or {}
+            checkpoint = _read_json(run_dir / CHECKPOINT_DIR / "latest.json", CHECKPOINT_STATE) or {}
             steps = int(checkpoint.get("num_timesteps", 0))
             # rows past the checkpoint are redone by the resumed run
             evaluations = [row for row in evaluations if row["timesteps"] <= steps]
         records.append(TrialRecord(
-            trial_id=trial_id, seed=seed, space=params.get("space", {}), run_dir=run_dir, status=status,
-            error=_error_line(result.error) if status == ERROR else "",
-            attempts=int(trial.get("attempts", 0)), wall_seconds=float((final or trial).get("wall_seconds", 0.0)),
-            steps=steps, evaluations=evaluations))
+            trial_id=name, seed=seed, space=trial["space"], run_dir=run_dir, status=status,
+            error=errors.get(name, "") if status == ERROR else "",
+            attempts=int((record or {}).get("attempts", 0)),
+            wall_seconds=float((final or record or {}).get("wall_seconds", 0.0)), steps=steps,
+            evaluations=evaluations))
     return records
 
 
@@ -151,14 +220,15 @@ def test_evaluation(record: TrialRecord, sweep_dir: Path, episodes: int, seed: i
     """`bh8 eval` of the trial's best model on the test split, once: its report is kept in
     test/<trial>/ (written to a staging folder renamed into place when complete) and read back on
     later runs instead of evaluating again. Returns bh8 eval's results.json."""
-    from bh8_gym.agents import evaluate
+    from bh8_gym.agents.evaluation import evaluate
 
     target = sweep_dir / TEST_DIR / record.run_dir.name
     done = previous_test(target, episodes, seed, objects)
     if done is not None:
         return done
-    staging = target.with_name(target.name + ".partial")
-    shutil.rmtree(staging, ignore_errors=True)
+    (sweep_dir / TEST_DIR).mkdir(exist_ok=True)
+    # A folder of our own, made new (never one already there, which could be a planted link).
+    staging = Path(tempfile.mkdtemp(prefix=f"{target.name}.partial-", dir=sweep_dir / TEST_DIR))
     parser = argparse.ArgumentParser()
     evaluate.configure_parser(parser)
     args = parser.parse_args(test_command_arguments(record.model, episodes, seed, objects) + ["--out", str(staging)])
@@ -166,24 +236,29 @@ def test_evaluation(record: TrialRecord, sweep_dir: Path, episodes: int, seed: i
     with contextlib.redirect_stdout(output), contextlib.redirect_stderr(output):
         code = evaluate.run(args)
     if code != 0:
+        shutil.rmtree(staging, ignore_errors=True)
         raise RuntimeError(f"bh8 eval of {record.model} failed: {output.getvalue().strip()}")
-    (staging / "eval.txt").write_text(output.getvalue())
-    if target.exists():  # made with other --test-* settings: replaced by the one asked for now
-        shutil.rmtree(target)
+    atomic_write(staging / "eval.txt", lambda handle: handle.write(output.getvalue().encode()))
+    if os.path.lexists(target):  # made with other --test-* settings: replaced by the one asked for now
+        aside = Path(tempfile.mkdtemp(prefix=f"{target.name}.old-", dir=sweep_dir / TEST_DIR))
+        os.replace(target, aside / "old")  # a link is moved, never followed
+        shutil.rmtree(aside, ignore_errors=True)
     os.replace(staging, target)
-    return json.loads((target / "results.json").read_text())
+    return read_run_json(target / "results.json", TEST_RESULTS, RESULTS_LIMIT_BYTES)
 
 
 def previous_test(target: Path, episodes: int, seed: int, objects: str) -> dict | None:
     """The test report in `target` if it was made with these settings (the test split is evaluated
     once; a resumed or repeated sweep reads it back), else None."""
     try:
-        results = json.loads((target / "results.json").read_text())
-    except (OSError, ValueError):
+        results = read_run_json(target / "results.json", TEST_RESULTS, RESULTS_LIMIT_BYTES)
+    except TrainingError:
+        return None
+    if not all(isinstance(part, dict) for part in results["by_object_set"].values()):
         return None
     sets = [name.strip() for name in objects.split(",") if name.strip()]
     if (results.get("seed") == seed and results.get("object_sets") in ([""], sets)
-            and all(part["episodes"] == episodes for part in results["by_object_set"].values())):
+            and all(part.get("episodes") == episodes for part in results["by_object_set"].values())):
         return results
     return None
 
@@ -224,7 +299,7 @@ def plot_curves(records: list[TrialRecord], path: Path) -> Path | None:
     axes.set_title(f"{len(curves)} trials")
     axes.legend(loc="best", fontsize=7)
     figure.tight_layout()
-    figure.savefig(path, dpi=100)
+    atomic_write(path, lambda handle: figure.savefig(handle, dpi=100, format="png"))  # a planted link is replaced
     plt.close(figure)
     return path
 

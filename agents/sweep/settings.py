@@ -1,28 +1,35 @@
 """A `bh8 sweep`'s fixed settings (sweep.json): made from the config and the command line, or read
 back by --resume, and checked the same way either way: the config and every config the search
-space can give as bh8 train checks one (agents/config_check.py), the seeds, the resources and
+space can give as bh8 train checks one (agents/training/config_check.py), the seeds, the resources and
 every number. A resumed sweep writes only where its command line says (`resumed_settings`)."""
 from __future__ import annotations
 
 import argparse
+import re
+import secrets
 from datetime import datetime, timezone
 from pathlib import Path
 
-from bh8_gym.agents import config_check
-from bh8_gym.agents.config_check import MAX_ENVS, MAX_TIMESTEPS
+from bh8_gym.agents.training import config_check
+from bh8_gym.agents.training.config_check import MAX_ENVS, MAX_TIMESTEPS
 from bh8_gym.agents.sweep.cluster import check_resources
 from bh8_gym.agents.sweep.space import (
     MAX_TRIALS,
     SweepConfigError,
+    count_trials,
     check_seeds,
     check_space_values,
     check_spec,
     check_sweep,
+    check_trial,
     parse_seeds,
+    plan_trials,
     read_sweep_table,
+    trial_name,
 )
 
 SETTINGS_FILE = "sweep.json"
+SETTINGS_LIMIT_BYTES = 16 << 20  # sweep.json: 10,000 planned trials take about 2 MB
 # Options fixed when a sweep starts: --resume takes them from sweep.json.
 FIXED_OPTIONS = ("config", "algo", "env", "seeds", "samples", "search", "timesteps", "n_envs",
                  "resources_per_trial", "max_concurrent", "max_failures", "out")
@@ -41,12 +48,11 @@ def _absolute_object_files(config: dict) -> None:
 
 def new_settings(args: argparse.Namespace) -> dict:
     """The settings of a new sweep from its config and the command line, checked (`check_settings`)."""
-    from bh8_gym.agents.train import _check_config, default_config_path, load_config
+    from bh8_gym.agents.training.train import default_config_path, load_config
+    from bh8_gym.agents.training.trainer import _check_config
 
     if args.out is None:
         raise SweepConfigError("--out DIR is required (or --resume DIR to continue a sweep)")
-    if args.trust_file:
-        raise SweepConfigError("--trust-file applies to --resume only")
     config_path = args.config or default_config_path(args.algo or "PPO", args.env or "BH8Grasp-v0")
     config = load_config(config_path)
     if args.algo and config["algorithm"] != args.algo:
@@ -76,6 +82,7 @@ def new_settings(args: argparse.Namespace) -> dict:
     for folder in {sweep_dir, experiment}:
         if folder.exists() and any(folder.iterdir()):
             raise SweepConfigError(f"{str(folder)!r} is not empty; choose another --out")
+    plan_seed = secrets.randbelow(2**31)
     return check_settings({
         "version": 1,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -89,6 +96,14 @@ def new_settings(args: argparse.Namespace) -> dict:
         "resources": resources,
         "max_concurrent": args.max_concurrent,
         "max_failures": args.max_failures or 0,
+        # Every trial of a random/grid sweep, drawn now: --resume runs the unfinished ones from this
+        # record, never from Ray Tune's pickled state (an Optuna sweep's trials are recorded as they
+        # start, in their run directories).
+        "plan_seed": plan_seed,
+        # Ties the trials' records to this sweep: a run directory copied from another sweep is not one
+        # of its trials (--resume refuses it).
+        "sweep_id": secrets.token_hex(8),
+        "trials": plan_trials(sweep, plan_seed) if sweep["search"] == "random" else [],
     })
 
 
@@ -103,7 +118,7 @@ def resumed_settings(args: argparse.Namespace) -> dict:
     checked as a new sweep's are. It writes only in DIR and in the folder the command line names
     (--storage): the paths sweep.json records are not followed, so an edited one cannot send the
     sweep's writes elsewhere."""
-    import json
+    from bh8_gym.safe_files import FileError, read_json_bounded
 
     given = [f"--{name.replace('_', '-')}" for name in FIXED_OPTIONS if getattr(args, name) is not None]
     if given:
@@ -112,12 +127,9 @@ def resumed_settings(args: argparse.Namespace) -> dict:
     if not args.resume.is_dir():
         raise SweepConfigError(f"--resume {str(args.resume)!r}: no such directory")
     try:
-        if path.stat().st_size > 64 << 20:
-            raise ValueError("larger than 64 MB")
-        settings = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as error:
-        raise SweepConfigError(f"--resume {str(args.resume)!r}: not a sweep directory (cannot read {SETTINGS_FILE}: "
-                               f"{str(error)[:200] or type(error).__name__})") from None
+        settings = read_json_bounded(path, SETTINGS_LIMIT_BYTES, SETTINGS_FILE)
+    except FileError as error:
+        raise SweepConfigError(f"--resume {str(args.resume)!r}: not a sweep directory ({str(error)[:300]})") from None
     if not isinstance(settings, dict) or settings.get("version") != 1:
         raise SweepConfigError(f"--resume {str(args.resume)!r}: {SETTINGS_FILE} is not a bh8 sweep's")
     sweep_dir = args.resume.resolve()
@@ -135,7 +147,7 @@ def resumed_settings(args: argparse.Namespace) -> dict:
 
 def check_settings(settings: dict) -> dict:
     """A sweep's settings (new, or sweep.json's on --resume): every field, the config and every
-    config the search space can give (agents/config_check.py). Returns them."""
+    config the search space can give (agents/training/config_check.py). Returns them."""
     config_check.check_plain(settings)
     config = settings.get("config")
     config_check.check_config(config)
@@ -165,6 +177,7 @@ def check_settings(settings: dict) -> dict:
     except SweepConfigError as error:
         raise SweepConfigError(f"resources: {error}") from None
     check_space_values(config, settings["space"], settings["n_envs"])
+    _check_plan(settings)
     # The base config's envs, built once as bh8 train would (the env checks its nested settings); a
     # search dimension inside them is checked by the trial that builds its env.
     config_check.check_env_tables(config)
@@ -176,8 +189,26 @@ def check_settings(settings: dict) -> dict:
     return settings
 
 
+def _check_plan(settings: dict) -> None:
+    """The planned trials: a random/grid sweep's every trial in order (`plan_trials`), each one its
+    space can give; none for an Optuna sweep."""
+    if not (isinstance(settings.get("sweep_id"), str) and re.fullmatch(r"[0-9a-f]{16}", settings["sweep_id"])):
+        raise SweepConfigError(f"sweep_id must be 16 hexadecimal digits, got {config_check.shown(settings.get('sweep_id'))}")
+    plan_seed, trials = settings.get("plan_seed"), settings.get("trials")
+    if not config_check.Integer(0, 2**31 - 1).accepts(plan_seed):
+        raise SweepConfigError(f"plan_seed must be an integer in 0..{2**31 - 1}, got {config_check.shown(plan_seed)}")
+    expected = count_trials(settings) if settings["search"] == "random" else 0
+    if not isinstance(trials, list) or len(trials) != expected:
+        raise SweepConfigError(f"trials must list the sweep's {expected} planned trials, got "
+                               f"{config_check.shown(trials)}")
+    for index, trial in enumerate(trials):
+        check_trial(trial, settings, "trials")
+        if trial["name"] != trial_name(index):
+            raise SweepConfigError(f"trials: trial {index} is named {trial['name']!r}, not {trial_name(index)!r}")
+
+
 def write_settings(settings: dict) -> None:
-    from bh8_gym.agents.train import write_json_atomic
+    from bh8_gym.agents.evaluation.run_files import write_json_atomic
 
     sweep_dir = Path(settings["sweep_dir"])
     sweep_dir.mkdir(parents=True, exist_ok=True)

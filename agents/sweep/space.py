@@ -20,9 +20,11 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+import re
 from typing import Any
 
-from bh8_gym.agents import config_check
+from bh8_gym.agents.evaluation.bounds import MAX_SEED
+from bh8_gym.agents.training import config_check
 
 SWEEP_TABLE = "sweep"
 SWEEP_KEYS = ("seeds", "samples", "search", "space")
@@ -36,6 +38,8 @@ MAX_VALUES = 1000  # of one grid or choice dimension
 # Past this many combinations of the space's values, each dimension's values are checked on the
 # base config alone (`check_space_values`).
 MAX_CHECKED_COMBINATIONS = 4096
+# A trial's name: t0000.. for a planned (random/grid) trial, Ray Tune's id for one Optuna proposed.
+TRIAL_NAME = re.compile(r"t[0-9]{4}|[0-9a-f]{5,16}_[0-9]{5}")
 
 
 class SweepConfigError(ValueError):
@@ -46,7 +50,7 @@ def parse_seeds(text: str) -> list[int]:
     """`--seeds 0,1,2,3` (or a range `0-3`) as a list of distinct integers in 0..MAX_SEED, at most
     MAX_SEEDS of them: checked before a range is expanded, so `0-4294967295` is refused at once."""
     seeds: list[int] = []
-    usage = (f"--seeds: expected at most {MAX_SEEDS} seeds in 0..{config_check.MAX_SEED}, as comma-separated "
+    usage = (f"--seeds: expected at most {MAX_SEEDS} seeds in 0..{MAX_SEED}, as comma-separated "
              f"integers or ranges such as 0,1,2 or 0-3")
     if len(text) > 100_000:
         raise SweepConfigError(f"{usage}; got {len(text)} characters")
@@ -57,7 +61,7 @@ def parse_seeds(text: str) -> list[int]:
             low, high = int(low), int(high)  # more than 4300 digits: ValueError
         except ValueError:
             raise SweepConfigError(f"{usage}, got {text!r}") from None
-        if not 0 <= low <= high <= config_check.MAX_SEED or len(seeds) + high - low + 1 > MAX_SEEDS:
+        if not 0 <= low <= high <= MAX_SEED or len(seeds) + high - low + 1 > MAX_SEEDS:
             raise SweepConfigError(f"{usage}, got {part!r}")
         seeds += range(low, high + 1)
     return check_seeds(seeds, "--seeds")
@@ -65,9 +69,9 @@ def parse_seeds(text: str) -> list[int]:
 
 def check_seeds(seeds: Any, where: str) -> list[int]:
     if (not isinstance(seeds, list) or not 0 < len(seeds) <= MAX_SEEDS
-            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= config_check.MAX_SEED
+            or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED
                    for s in seeds)):
-        raise SweepConfigError(f"{where}: expected a list of 1..{MAX_SEEDS} integers in 0..{config_check.MAX_SEED}, "
+        raise SweepConfigError(f"{where}: expected a list of 1..{MAX_SEEDS} integers in 0..{MAX_SEED}, "
                                f"got {config_check.shown(seeds)}")
     if len(set(seeds)) != len(seeds):
         raise SweepConfigError(f"{where}: seeds repeat in {seeds!r}")
@@ -199,7 +203,7 @@ def check_sweep(config: dict, sweep: dict) -> None:
 
 
 def check_space_values(config: dict, space: dict[str, dict], n_envs: int) -> None:
-    """Every config the space can give passes bh8 train's checks (agents/config_check.py): each
+    """Every config the space can give passes bh8 train's checks (agents/training/config_check.py): each
     combination of the grid and choice values and of the ends of each range, and for a range one
     value between its ends too (an integer setting drawn from a range would get fractions). The
     checks are intervals, so a draw between two good ends is good. Past MAX_CHECKED_COMBINATIONS
@@ -228,6 +232,63 @@ def count_trials(sweep: dict) -> int:
     """How many trials the sweep runs: seeds x grid points x samples."""
     grid = math.prod(len(spec["grid"]) for spec in sweep["space"].values() if "grid" in spec)
     return len(sweep["seeds"]) * grid * sweep["samples"]
+
+
+def plan_trials(sweep: dict, plan_seed: int) -> list[dict]:
+    """Every trial of a random/grid sweep, drawn here once when it starts (bh8 sweep records them in
+    sweep.json, and --resume runs the unfinished ones from that record, never from Ray Tune's
+    pickled state): the seeds crossed with the grid points, `samples` draws of the random
+    dimensions at each, in a fixed order. Each is {"name": "t0000", "seed": s, "space": {key: value}}."""
+    import numpy as np
+
+    rng = np.random.default_rng(plan_seed)
+    grids = {key: spec["grid"] for key, spec in sweep["space"].items() if "grid" in spec}
+    trials = []
+    for point in itertools.product(*grids.values()):
+        for _ in range(sweep["samples"]):
+            draw = {}
+            for key, spec in sweep["space"].items():
+                (kind, values), = spec.items()
+                if kind == "choice":
+                    draw[key] = copy.deepcopy(values[int(rng.integers(len(values)))])
+                elif kind == "uniform":
+                    draw[key] = float(rng.uniform(values[0], values[1]))
+                elif kind == "loguniform":
+                    draw[key] = float(math.exp(rng.uniform(math.log(values[0]), math.log(values[1]))))
+            values = {key: copy.deepcopy(value) for key, value in zip(grids, point)}
+            values.update(draw)
+            ordered = {key: values[key] for key in sweep["space"]}
+            trials += [{"seed": seed, "space": ordered} for seed in sweep["seeds"]]
+    return [{"name": trial_name(index), **trial} for index, trial in enumerate(trials)]
+
+
+def trial_name(index: int) -> str:
+    return f"t{index:04d}"
+
+
+def check_trial(trial: Any, sweep: dict, where: str) -> dict:
+    """A recorded trial ({"name", "seed", "space"}: sweep.json's plan, or a trial.json) whose seed is
+    one of the sweep's and whose every value is one its space can give (a grid or choice value, or
+    within a range): what --resume will train is what the sweep was started with."""
+    if not isinstance(trial, dict) or set(trial) != {"name", "seed", "space"}:
+        raise SweepConfigError(f"{where}: a trial must be {{name, seed, space}}, got {config_check.shown(trial)}")
+    name, seed, values = trial["name"], trial["seed"], trial["space"]
+    if not isinstance(name, str) or not TRIAL_NAME.fullmatch(name):
+        raise SweepConfigError(f"{where}: trial name {config_check.shown(name)} is not one bh8 sweep gives")
+    if seed not in sweep["seeds"] or isinstance(seed, bool):
+        raise SweepConfigError(f"{where}: trial {name}'s seed {config_check.shown(seed)} is not one of the sweep's")
+    if not isinstance(values, dict) or set(values) != set(sweep["space"]):
+        raise SweepConfigError(f"{where}: trial {name}'s values must set exactly the space's keys")
+    for key, value in values.items():
+        (kind, allowed), = sweep["space"][key].items()
+        if kind in ("grid", "choice"):
+            good = any(type(value) is type(option) and value == option for option in allowed)
+        else:
+            good = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and allowed[0] <= value <= allowed[1])
+        if not good:
+            raise SweepConfigError(f"{where}: trial {name}'s {key} = {config_check.shown(value)} is not in the space")
+    return trial
 
 
 def tune_domains(space: dict[str, dict]) -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """`bh8 serve`: the simulated hand's firmware on a pseudo-terminal (docs/architecture.md Contract 3).
 
-The server itself is `virtual_serial.PtyServer` (pacing, ports, reopening); the hand is
+The server itself is `serial_server.PtyServer` (pacing, ports, reopening); the hand is
 `simulator.build_firmware`'s. This module is the command: its options, the store's directory,
 the start-up lines, signals, and `--env`.
 
@@ -36,7 +36,7 @@ from bh8_gym.objects import OBJECT_SPEC_HELP
 from bh8_gym.protocol import FIRMWARE_PROFILES
 from bh8_gym.rendering import display_available
 from bh8_gym.simulator import build_firmware, shutdown_firmware
-from bh8_gym.virtual_serial import PtyServer
+from bh8_gym.serial_server import PtyServer
 
 
 def default_state_dir() -> Path:

@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from math import pi, sin
 
+MAX_PHASE_SECONDS = 60.0
+
 
 @dataclass(frozen=True)
 class ArmSchedule:
@@ -44,10 +46,21 @@ class ArmSchedule:
     PHASES = ("grasp", "lift", "hold")
 
     def __post_init__(self):
+        # Our bounds, checked before a loop uses them (a hold of 1e300 s never ended an episode's
+        # step count): an arm's phase lasts a minute at most, lifts at most a metre, shakes at most
+        # 20 cm at up to 50 Hz.
+        bounds = {"grasp_seconds": (0.0, MAX_PHASE_SECONDS), "lift_seconds": (0.0, MAX_PHASE_SECONDS),
+                  "hold_seconds": (0.0, MAX_PHASE_SECONDS), "lift_height": (0.0, 1.0), "shake_amplitude": (0.0, 0.2),
+                  "shake_frequency": (0.0, 50.0), "press_force": (0.0, 50.0), "press_admittance": (0.0, 10.0),
+                  "press_speed": (0.0, 2.0)}
+        for name, (low, high) in bounds.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+                raise ValueError(f"ArmSchedule.{name} must be a number in [{low:g}, {high:g}], got {value!r:.40}")
         for name in ("grasp_seconds", "lift_seconds", "hold_seconds"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ArmSchedule.{name} must be > 0, got {getattr(self, name)!r}")
-        if not (self.lift_height >= 0 and self.shake_amplitude >= 0 and self.shake_frequency > 0):
+        if not self.shake_frequency > 0:
             raise ValueError(f"invalid ArmSchedule {self!r}")
         if not (0 <= self.press_force <= 50 and self.press_admittance > 0 and 0 < self.press_speed <= 2):
             raise ValueError(f"ArmSchedule needs press_force 0-50 N, press_admittance > 0 and press_speed "

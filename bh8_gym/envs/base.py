@@ -34,6 +34,7 @@ info["safety_stop"] naming the reading, plus the task's `safety_stop_reward`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -57,6 +58,17 @@ from bh8_gym.simulator import LoopSimulation
 # After this many new object shapes, reset builds a fresh world instead of restoring the old one
 # (the same trajectories: a seed replays exactly whatever the env ran before). Memory stays bounded.
 WORLD_SHAPE_LIMIT = 1024
+
+
+@dataclass(frozen=True)
+class EnvSnapshot:
+    """The whole state of one episode at a step: firmware and plant (`FirmwareSnapshot`), the
+    task's scene (the arm's clock and wrist), and the env's host-side bookkeeping (clock, previous
+    action, haptic history, generators). Opaque: give it back to `BH8LoopEnv.restore`."""
+
+    firmware: Any
+    scene: Any
+    host: dict
 
 
 class _FromInterface:
@@ -271,6 +283,48 @@ class BH8LoopEnv(gym.Env):
         if self.render_mode == "human":
             self.render()
         return self._observation(values), reward, terminated, truncated and not terminated, info
+
+    # ------------------------------------------------------------------ snapshot and branch
+
+    def snapshot(self) -> EnvSnapshot:
+        """The episode's state after the last step, to branch from: `restore` it, step one
+        continuation, `restore` it again, step another. Every branch starts from the same
+        state, whatever the others did (the plant renews its contact pairs on restore, as reset
+        does), so a continuation's outcome does not depend on the branches run before it.
+        Call `release` when done with it (PyBullet keeps a saved state until removed)."""
+        if not self._episode_started:
+            raise gym.error.ResetNeeded("snapshot() needs an episode: call reset() first")
+        host = {
+            "prev_action": list(self._prev_action), "elapsed": self._elapsed, "processing_time": self._processing_time,
+            "cycles": self._cycles, "last_values": self._last_values, "feedback_block": self._feedback_block,
+            "history": None if self._history is None else self._history.copy(),
+            "np_random": self.np_random.bit_generator.state,
+            "physics_rng": None if self._physics_rng is None else self._physics_rng.bit_generator.state,
+        }
+        return EnvSnapshot(self.firmware.snapshot(), self.scene.snapshot_state(), host)
+
+    def restore(self, snapshot: EnvSnapshot) -> None:
+        """Return the episode to `snapshot` (taken by this env in this episode's world)."""
+        if not isinstance(snapshot, EnvSnapshot):
+            raise TypeError(f"restore() needs an EnvSnapshot, got {type(snapshot).__name__}")
+        if self.firmware is None:
+            raise self._closed_error()
+        host = snapshot.host
+        self.firmware.restore(snapshot.firmware)
+        self.scene.restore_state(snapshot.scene)
+        self._prev_action = list(host["prev_action"])
+        self._elapsed, self._processing_time = host["elapsed"], host["processing_time"]
+        self._cycles, self._last_values = host["cycles"], host["last_values"]
+        self._feedback_block = host["feedback_block"]
+        self._history = None if host["history"] is None else host["history"].copy()
+        self.np_random.bit_generator.state = host["np_random"]
+        if host["physics_rng"] is not None:
+            self._physics_rng.bit_generator.state = host["physics_rng"]
+        self._episode_started = True
+
+    def release(self, snapshot: EnvSnapshot) -> None:
+        """Free the PyBullet state `snapshot` holds (it cannot be restored after)."""
+        self.plant.remove_state(snapshot.firmware.plant_state)
 
     def render(self):
         if self.firmware is None:

@@ -38,8 +38,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import re
-import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
@@ -50,6 +48,7 @@ import pybullet_data
 from bh8_gym.envs.resting import resting_pose
 from bh8_gym.meshes import mesh_bounds
 from bh8_gym.objects import PRIMITIVE_KINDS, ObjectSpec, parse_object_file
+from bh8_gym.urdfs import read_urdf
 
 SPLITS = ("train", "validation", "test")
 OBJECT_SETS = ("train", "validation", "test", "primitives-train", "primitives-validation", "primitives-test",
@@ -109,22 +108,19 @@ def random_urdf_names(split: str) -> tuple[str, ...]:
     return tuple(n for n in names if random_urdf_split(n) == split and n not in BROKEN_RANDOM_URDFS)
 
 
-_MESH_SCALE = re.compile(r"\s+")
-
-
 def _urdf_single_mesh(urdf_path: Path) -> tuple[Path, np.ndarray]:
-    """The collision mesh file and its scale of a one-link URDF such as the random_urdfs."""
-    root = ElementTree.parse(urdf_path).getroot()
-    mesh = root.find("./link/collision/geometry/mesh")
-    if mesh is None:
+    """The collision mesh file and its scale of a one-link URDF such as the random_urdfs (read by
+    `bh8_gym.urdfs`, as a user's URDF is)."""
+    link = read_urdf(urdf_path).links[0]
+    geometry = link.collisions[0].geometry if link.collisions else None
+    if geometry is None or geometry.mesh is None:
         raise ValueError(f"{urdf_path} has no collision mesh")
-    scale = np.array([float(v) for v in _MESH_SCALE.split(mesh.get("scale", "1 1 1").strip())])
-    return urdf_path.parent / mesh.get("filename"), scale
+    return Path(geometry.path), np.array([float(v) for v in geometry.attributes["scale"].split()])
 
 
 def obj_vertex_bounds(obj_path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned bounds (min, max) of the vertices the faces of a mesh file use; a ValueError
-    (bh8_gym.meshes.MeshError) for a file PyBullet could not read safely."""
+    (bh8_gym.meshes.MeshError) for a file that is refused."""
     return mesh_bounds(obj_path)
 
 

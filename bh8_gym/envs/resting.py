@@ -6,9 +6,9 @@ validation models tip over by more than 10° within a second (a plate on its edg
 point), so a palm height planned from the loaded pose met an object that had fallen away from the
 fingers. `resting_pose(spec)` drops the mesh once (at a fixed size: the pose it settles into
 does not depend on its scale) on a plane in a private PyBullet world and returns the orientation it
-comes to rest in and its extents lying so (cached by the file's content, a SHA-256 of its bytes:
-the same mesh always rests the same way on one machine, and a file rewritten in place is settled
-again; the scale it is settled at follows from those bytes). Set down so, 4 of the 100
+comes to rest in and its extents lying so (cached by the mesh's content, a SHA-256 of the clean OBJ
+PyBullet is given: the same mesh always rests the same way on one machine, and a file rewritten in
+place is settled again; the scale it is settled at follows from those bytes). Set down so, 4 of the 100
 validation models still tilt more than 10° in a second (a marginal facet at their own size and
 friction), against 56 as loaded. Primitives are made lying still (a box on a face, a cylinder on its end, a capsule on its side), so they keep
 their orientation.
@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 import pybullet
 
-from bh8_gym.meshes import MESH_FILE_LIMIT_BYTES, MeshError, mesh_bounds, read_regular_file
+from bh8_gym.meshes import read_mesh
 from bh8_gym.objects import ObjectLoader, ObjectSpec
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -48,9 +48,10 @@ def resting_pose(spec: ObjectSpec) -> RestingPose:
     """How `spec` lies on a table once set down from its loaded orientation (primitives: as made)."""
     if spec.kind != "mesh":
         return RestingPose(IDENTITY, None)
-    key = hashlib.sha256(read_regular_file(spec.path, MESH_FILE_LIMIT_BYTES, "mesh", MeshError)).digest()
+    mesh = read_mesh(spec.path)
+    key = hashlib.sha256(mesh.obj_bytes).digest()  # the geometry PyBullet is given
     if key not in _poses:
-        low, high = mesh_bounds(spec.path)
+        low, high = mesh.bounds
         scale = SETTLED_SIZE / float(np.max(high - low))
         orientation, extents = _settle(replace(spec, scale=scale, mass=0.1))
         _poses[key] = RestingPose(orientation, extents / scale)
@@ -67,8 +68,6 @@ def _private_world() -> int:
         if _world.get("client") is not None:
             pybullet.disconnect(physicsClientId=_world["client"])
         client = pybullet.connect(pybullet.DIRECT)
-        # PyBullet keeps a mesh file's contents by its name: a file rewritten in place must be read again.
-        pybullet.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=client)
         pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
         pybullet.setTimeStep(SETTLE_STEP, physicsClientId=client)
         plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
@@ -80,7 +79,7 @@ def _private_world() -> int:
 def _settle(spec: ObjectSpec) -> tuple[tuple[float, float, float, float], np.ndarray]:
     client = _private_world()
     # A loader of its own each time: a loader's shape cache is keyed by path, and a file rewritten
-    # in place must be read again.
+    # in place must be read again (PyBullet reads our clean copy, named by its content).
     loader = ObjectLoader(client, visuals=False)
     body = loader.create(spec, (0.0, 0.0, 1.0), IDENTITY)
     _world["shapes"] += loader.shapes_created

@@ -234,6 +234,15 @@ class GraspScene:
         self._wrist_target[:] = self.wrist_start
         self.plant.set_wrist_pose(self._wrist_target, WRIST_PALM_DOWN)
 
+    def snapshot_state(self) -> tuple:
+        """What moves in an episode besides PyBullet's bodies: the arm's clock and wrist target."""
+        return (self.start_time, self.press_rise, self._wrist_target.copy(), self.plant.step_hook)
+
+    def restore_state(self, state: tuple) -> None:
+        """Back to `snapshot_state`'s state (the same episode's object must still be in the world)."""
+        self.start_time, self.press_rise, wrist, self.plant.step_hook = state
+        self._wrist_target[:] = wrist
+
     def _press(self) -> None:
         """Before each physics step of a table-contact grasp: the arm's admittance in z."""
         plant = self.plant
@@ -311,6 +320,13 @@ class ReachScene:
 
     def remove_object(self) -> None:
         """Nothing to remove: the reach scene has no per-episode bodies."""
+
+    def snapshot_state(self):
+        """The reach scene holds nothing that moves within an episode."""
+        return None
+
+    def restore_state(self, state) -> None:
+        """Nothing to restore (`snapshot_state`)."""
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """Wrappers and helpers around the BH8 environments.
 
 `ContinuousActions` is what training uses: Gaussian policies (PPO, SAC) emit floats, the hand
-takes bytes. The same mapping (`unit_to_bytes`) is what `bh8 deploy` applies to a policy's output,
-so a trained policy drives a real hand with exactly the bytes it produced in simulation.
+takes bytes. The mapping is the host's (`bh8_gym.action_bytes`): `bh8 deploy` applies the same
+one to a policy's output, so a trained policy drives a real hand with exactly the bytes it
+produced in simulation.
 """
 from __future__ import annotations
 
@@ -13,37 +14,12 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
-
-def unit_to_bytes(unit: np.ndarray, low: np.ndarray, high: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Map floats in [-1, 1] (clipped) linearly onto the integer range low..high, rounding to nearest.
-
-    LCV (-128..127): -1 -> -128, 0 -> 0, +1 -> 127. LCPG (0..255): -1 -> 0, +1 -> 255.
-    """
-    units, centres, halves = np.broadcast_arrays(np.asarray(unit, dtype=np.float64), (low + high) / 2.0, (high - low) / 2.0)
-    values = np.array(unit_to_byte_list(units.ravel().tolist(), centres.ravel().tolist(), halves.ravel().tolist()),
-                      dtype=np.int64).reshape(units.shape)
-    if out is None:
-        return values.astype(np.int16)
-    out[...] = values
-    return out
-
-
-def unit_to_byte_list(units: list[float], centres: list[float], halves: list[float]) -> list[int]:
-    """`unit_to_bytes` on plain floats, element by element: round(centre + half x clip(u, -1, 1)),
-    halves to even as np.rint. The per-step path: on a handful of values numpy's call costs dominate."""
-    return [round(centre + half * (-1.0 if u < -1.0 else (1.0 if u > 1.0 else u)))
-            for u, centre, half in zip(units, centres, halves)]
-
-
-def bytes_to_unit(values: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """Inverse of `unit_to_bytes` (up to rounding): integer control values -> floats in [-1, 1]."""
-    centre = (low + high) / 2.0
-    half = (high - low) / 2.0
-    return ((np.asarray(values, dtype=np.float64) - centre) / half).astype(np.float32)
+from bh8_gym.action_bytes import bytes_to_unit, centres_and_halves, unit_to_byte_list
 
 
 class ContinuousActions(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
-    """Actions are float32 in [-1, 1], one per control datum; mapped to the LOOP bytes by `unit_to_bytes`.
+    """Actions are float32 in [-1, 1], one per control datum; mapped to the LOOP bytes as
+    `action_bytes.unit_to_bytes` maps them.
 
     Out-of-range floats are clipped (Gaussian policies overshoot); NaN/inf or a wrong shape raise
     ValueError naming the value.
@@ -58,9 +34,7 @@ class ContinuousActions(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
         self._dtype = space.dtype
-        # unit_to_bytes' centre and half-range, once, as plain floats
-        self._centres = ((self._low + self._high) / 2.0).tolist()
-        self._halves = ((self._high - self._low) / 2.0).tolist()
+        self._centres, self._halves = centres_and_halves(self._low, self._high)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=space.shape, dtype=np.float32)
 
     def action(self, action) -> np.ndarray:

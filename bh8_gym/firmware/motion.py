@@ -4,12 +4,15 @@ stop (BS), goal reached, ^C; HOLD decides what a terminated motor does.
 
 Choices where the documents are silent (SPEC.md §4, §8):
 
-- HI (SPEC.md §4): each selected motor opens in velocity mode at IVEL until it stalls against its
-  open stop; fingers back off `IHIT_BACKOFF_COUNTS` and hit the stop again until they have hit it
-  max(IHIT, 1) times (at most `IHIT_MAX_IMPACTS`); the origin is set so the stop reads −IOFF; a
-  trapezoidal move then brings the motor to 0. HOLD decides what happens at the end. A motor still
-  opening faster than `HI_SEEK_MOVING_CPS` has not stalled; one that stalls short of its open stop
-  is not homed (no origin set there) and HI answers ERR 16.
+- HI (SPEC.md §4): each selected motor opens in velocity mode at IVEL until it stops (TSTOP, as
+  §5.3.4 defines it); fingers back off `IHIT_BACKOFF_COUNTS` and hit the stop again until they have
+  hit it max(IHIT, 1) times (at most `IHIT_MAX_IMPACTS`); the origin is set so where it stopped
+  reads −IOFF; a trapezoidal move then brings the motor to 0. HOLD decides what happens at the end.
+  A motor still opening faster than `HI_SEEK_MOVING_CPS`, or still gaining opening speed, has not
+  stopped. HI has no status of its own (§5.2.1, §5.5 lists it among no terminating commands): a
+  motor stopped short of its open stop (an obstacle, a drive too weak to move it) gets its origin
+  where it stopped, as §8 describes ("The finger was not opened completely ... Initialize the
+  finger"), and HI answers without error.
 - Stall (§5.5 case 1): a driven motor that has not moved more than `STALL_DISTANCE_COUNTS` for
   TSTOP ms (at least `MIN_STALL_WINDOW_MS`) terminates; a profile move whose motor keeps up with
   its profile is not stalled (at its start the profile has not moved that far yet).
@@ -53,11 +56,11 @@ IHIT_MAX_IMPACTS = 20  # our bound on max(IHIT, 1), so HI always ends in bounded
 # gathers speed slowly (about 1000 counts/s after 30 ms at the default FPG) and was taken for stalled
 # wherever it started; at the open stop a motor reads about 0.
 HI_SEEK_MOVING_CPS = 500.0
-# Our choice for HI: how far (plant counts) from the joint's open stop a stalled seek may end and
-# still count as at the stop. Every motor stalls within 5 counts of it (IHIT 0 to 4, seeds 0-11);
-# a seek stalled elsewhere (a drive too weak to move the motor: the spread at FPG 5 drives at 9 % duty
-# against its friction; an obstacle) leaves the motor uninitialised and HI answers ERR 16.
-HI_OPEN_STOP_TOLERANCE_COUNTS = 50.0
+# Our choice for HI: a seeking motor whose opening speed beats its best so far in this seek by more
+# than this (counts/s) is still getting going, not stopped. Driven from rest at a low gain it gathers
+# speed slowly (the spread at libgripper's FPG 5: 9 % duty, about 10,000 counts/s², 5 counts in the
+# first 30 ms), and the stall rule alone took it for stopped where it stood.
+HI_SEEK_GAINING_CPS = 50.0
 # The motion commands that clear BD and BP as they start (SPEC.md §3.1: "cleared after an O, TO, or HI").
 BREAKAWAY_CLEARING_COMMANDS = ("O", "TO", "HI")
 POSITION_COMMANDS = frozenset(("HOME", "IO", "IC", "M"))  # these report ERR 16 (§5.5)
@@ -71,7 +74,7 @@ class _MotorRun:
     """Termination bookkeeping of one motor during a motion command (§5.5)."""
 
     __slots__ = ("motor", "kind", "target", "direction", "progress", "smooth", "stall_time", "impacts_left",
-                 "reached")
+                 "reached", "top_speed")
 
     def __init__(self, motor: int, kind: int, target: float, position: float, time: float, direction: float = 0.0):
         self.motor = motor
@@ -83,10 +86,12 @@ class _MotorRun:
         self.progress = self.measure(position)  # where the motor was when it last moved on
         self.impacts_left = 0
         self.reached = True
+        self.top_speed = 0.0  # HI's seek: the fastest it has opened so far (counts/s)
 
     def restart(self, kind: int, target: float, position: float, time: float, direction: float = 0.0) -> None:
         self.kind, self.target, self.direction = kind, target, direction
         self.smooth, self.progress, self.stall_time = position, self.measure(position), time
+        self.top_speed = 0.0
 
     def measure(self, position: float) -> float:
         """Where a position run's motor is (any way it moves is motion: a servo swinging about its
@@ -101,6 +106,14 @@ class _MotorRun:
         if self.kind in _POSITION_RUNS:
             return abs(now - self.progress) > STALL_DISTANCE_COUNTS
         return now - self.progress > STALL_DISTANCE_COUNTS
+
+    def gaining(self, opening_speed: float) -> bool:
+        """HI's seek: whether the motor opens faster than ever in this seek (by HI_SEEK_GAINING_CPS):
+        a motor still gathering speed has not stopped, however little it has moved yet."""
+        if opening_speed > self.top_speed + HI_SEEK_GAINING_CPS:
+            self.top_speed = opening_speed
+            return True
+        return False
 
 
 class MotionTask:
@@ -157,7 +170,8 @@ class MotionTask:
                 # is detected", App. B A1). The encoder is smoothed first: a finger pressing on an
                 # object can jitter by a few counts from one physics step to the next.
                 if run.moved(position, self._stall_smoothing) or (
-                        run.kind in _POSITION_RUNS and self._on_profile(channel, t, position)):
+                        run.kind in _POSITION_RUNS and self._on_profile(channel, t, position)) or (
+                        run.kind == _RUN_HI_SEEK and run.gaining(-self._velocities[m - 1])):
                     run.progress = run.measure(run.smooth)
                     run.stall_time = t
                 elif (t - run.stall_time) * 1000.0 >= max(v["TSTOP"], MIN_STALL_WINDOW_MS) - TIME_EPS:
@@ -179,13 +193,8 @@ class MotionTask:
                 if not ended:
                     continue
                 if run.kind == _RUN_HI_SEEK:
-                    if abs(self._positions[m - 1]) > HI_OPEN_STOP_TOLERANCE_COUNTS:
-                        # Stalled short of the open stop (plant counts: 0 is the stop, Contract 1): no
-                        # home here (§5.2.1); the origin stays as it was, HI answers ERR 16.
-                        self._status[m] = int(Status.COULD_NOT_REACH_POSITION)
-                        self._terminate(m, position)
-                        runs.remove(run)
-                        continue
+                    # Stopped: at the open stop, or short of it (SPEC.md §4: the origin goes where the
+                    # motor stopped, as on the hand, §8 "not opened completely"; HI reports nothing).
                     if run.impacts_left > 0:
                         run.impacts_left -= 1
                         run.restart(_RUN_HI_BACKOFF, position + IHIT_BACKOFF_COUNTS, position, t)
@@ -225,7 +234,7 @@ class MotionTask:
             return
         self._update_peak_temperature()
         error = 0
-        if (word in POSITION_COMMANDS or word == "HI") and any(self._status[m] for m in motors):
+        if word in POSITION_COMMANDS and any(self._status[m] for m in motors):
             error = Status.COULD_NOT_REACH_POSITION
         self._reply(error=error)
 

@@ -17,6 +17,9 @@ Choices where the documents are silent (SPEC.md §5-§8):
   reported position becomes the present one every cycle: the part of a change LFDP cannot carry,
   overflow or the remainder below LFDPC, is discarded (§5.4.3 LFDPD: "any position change that
   cannot be sent in a delta position datum is discarded").
+- LFV is the HCTL's actual velocity, whole encoder counts per sample (§6.2.2: "all integer";
+  the HCTL-1100 computes it as the position change over one sample), the nearest to the motor's
+  speed, then divided by LFVC as C divides (towards zero); SPEC.md §4 derives what it reads.
 - LFAP is an unsigned word (SPEC.md §5): a position below 0 (a finger opened past its home, e.g.
   right after HI) is sent as 0, above 65535 as 65535; FGET P reports the signed value.
 """
@@ -140,7 +143,9 @@ class RealTimeLoop:
                 sg = strain[m - 1]
                 append(255 - sg if sgflip else sg)
             elif name == "LFV":
-                per_sample = int(velocities[m - 1] * period)
+                # The HCTL's actual velocity: whole counts moved in one sample (§6.2.2 "all integer"),
+                # the nearest to the speed (a finger at 3.98 counts/sample moves 4 in most samples)
+                per_sample = round(velocities[m - 1] * period)
                 scaled = int(per_sample / lfvc)
                 append(-128 if scaled < -128 else (127 if scaled > 127 else scaled))
             elif name == "LFDP":

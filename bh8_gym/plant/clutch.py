@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 
+import pybullet as p
+
 from bh8_gym.plant.joints import (
     FINGER_JOINTS,
     INNER_COUNTS_PER_RAD,
@@ -51,10 +53,14 @@ class Clutch:
                 opening_peak = -inner_speed
             velocity = drive_velocity[f]
             fraction = drive_fraction[f]
-            if velocity < 0.0 and drive_on[f]:
+            if drive_on[f] and velocity < 0.0:
                 # A rotor driven open keeps no closing speed: the next close's impacts lose only what
                 # that close reached (a remembered faster close made its start look held back).
                 closing_peak = 0.0
+            elif drive_on[f] and velocity > 0.0:
+                # Nor does a rotor driven closed keep an opening speed: the next open's blow on the
+                # stop preloads with what that open reached, not with an earlier, faster open.
+                opening_peak = 0.0
             closing_peaks[f], opening_peaks[f] = closing_peak, opening_peak
             if not (drive_on[f] and velocity != 0.0 and fraction > 0.0):
                 motor_torques[f] = 0.0
@@ -83,7 +89,8 @@ class Clutch:
                         blow = 1.0 - state.outer_loads[f] / tip_blow if state.outer_loads[f] > 0.0 else 1.0
                         if lost > 0.0 and blow > 0.0:
                             clutch += impact_gain * lost * blow * (clutch / capacity if clutch < capacity else 1.0)
-                        if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f]:
+                        if clutch > prm.breakaway_base_torque + prm.breakaway_preload_slope * state.preload[f] \
+                                and (q[i2] >= inner_closed or self._finger_touches(f)):
                             self._break_away(f)
                 elif velocity < 0.0 and q[i2] <= inner_open:
                     # Driven against the open stop: the clutch is tightened with the motor's torque plus
@@ -125,6 +132,15 @@ class Clutch:
         loss = (state.temperature - prm.ambient_temperature) / prm.thermal_resistance
         state.temperature += self.dt * (power - loss) / prm.heat_capacity
         state.time += self.dt
+
+    def _finger_touches(self, f: int) -> bool:
+        """Whether finger f's links touch anything (an object, the table, another finger) after this
+        step: only something the finger meets holds its inner link back (§9.3.1: "If the inner finger
+        link, while closing, contacts a target object ..."; one met by the outer link near its joint
+        holds the inner link too). A finger its own drive cannot carry (a few % of duty at a profile's
+        start, its weight on it) slows with its rotor, and no impact passes the clutch."""
+        hand, client = self.hand_id, self._client
+        return any(p.getContactPoints(bodyA=hand, linkIndexA=link, physicsClientId=client) for link in self._finger_links[f])
 
     def _break_away(self, f: int) -> None:
         state = self._state

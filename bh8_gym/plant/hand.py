@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pybullet as p
 
-from bh8_gym import hand_urdf
+from bh8_gym import hand_urdf, pybullet_files
 from bh8_gym import kinematics as kin
 from bh8_gym.plant.clutch import Clutch
 from bh8_gym.plant.drive_train import DriveTrain
@@ -75,7 +75,8 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         # Implicit cylinders: URDF cylinders otherwise load as polygonal hulls, whose facets make a
         # rolling contact (palm face, fingertips) jump.
         flags = p.URDF_USE_SELF_COLLISION | p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER
-        self.hand_id = p.loadURDF(str(hand_urdf.cached_urdf_path()), position, orientation, flags=flags, physicsClientId=cid)
+        with pybullet_files.written([(hand_urdf.urdf_bytes(), ".urdf")]) as (path,):  # a file only we wrote
+            self.hand_id = p.loadURDF(path, position, orientation, flags=flags, physicsClientId=cid)
         self._joint_index_by_name = {}
         self._link_index_by_name = {"palm": -1}
         for index in range(p.getNumJoints(self.hand_id, physicsClientId=cid)):
@@ -88,6 +89,8 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         self.joint_names = hand_urdf.JOINT_NAMES
         self.joint_indices = [self._joint_index_by_name[name] for name in self.joint_names]
         self.tip_link_indices = [self._link_index_by_name[name] for name in hand_urdf.TIP_LINK_NAMES]
+        self._finger_links = [(self._link_index_by_name[f"f{finger}_inner"], self._link_index_by_name[f"f{finger}_outer"])
+                              for finger in (1, 2, 3)]
         # Every joint motor off first (PyBullet enables velocity motors by default).
         all_joints = list(range(p.getNumJoints(self.hand_id, physicsClientId=cid)))
         p.setJointMotorControlArray(self.hand_id, all_joints, p.VELOCITY_CONTROL, forces=[0.0] * len(all_joints), physicsClientId=cid)

@@ -7,8 +7,10 @@ restored with it.
 """
 from __future__ import annotations
 
+import copy
+
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 from bh8_gym import kinematics as kin
 
@@ -76,4 +78,13 @@ class _PlantState:
     wrist_target: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
     def copy(self) -> "_PlantState":
-        return replace(self, **{f.name: list(getattr(self, f.name)) for f in fields(self) if isinstance(getattr(self, f.name), list)})
+        """A copy whose lists are its own (every restore of a saved state takes one)."""
+        twin = copy.copy(self)
+        for name in _STATE_FIELDS:
+            value = getattr(self, name)
+            if type(value) is list:
+                setattr(twin, name, value.copy())
+        return twin
+
+
+_STATE_FIELDS = tuple(f.name for f in fields(_PlantState))
