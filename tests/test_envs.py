@@ -350,6 +350,37 @@ def test_privileged_observations_only_on_request():
         env.close()
 
 
+def test_privileged_entries_read_each_cycles_world_once(monkeypatch):
+    """The reward, the privileged observation and info["privileged"] share one contact query and one
+    object pose per step (GraspTask.new_cycle), each of that step's world."""
+    env = gym.make("BH8Grasp-v0", privileged=True, randomize=False).unwrapped
+    queries = []
+    contact_points = pybullet.getContactPoints
+    monkeypatch.setattr(pybullet, "getContactPoints", lambda *a, **k: queries.append(a) or contact_points(*a, **k))
+    try:
+        env.reset(seed=3)
+        close = np.array([80 if name == "LCV" else 200 for _, name in env.layout.control_fields], dtype=np.int16)
+        touched = 0.0
+        for _ in range(100):
+            queries.clear()
+            obs, _, _, _, info = env.step(close)
+            assert len(queries) == 1
+            body, plant = env.scene.object_body, env.plant
+            position = np.array(pybullet.getBasePositionAndOrientation(body, physicsClientId=plant.client)[0])
+            touching = {link for link in plant.contacts_by_link(body)}
+            fingers = [float(any(plant.link_index(f"f{k}_{part}") in touching for part in ("inner", "outer", "tip")))
+                       for k in (1, 2, 3)]
+            entries = dict(zip(env.observation_fields, obs))
+            assert [entries[f"object_d{axis}"] for axis in "xyz"] == list(
+                (position - plant.wrist_pose()[0]).astype(np.float32))
+            assert [entries[f"contact_f{k}"] for k in (1, 2, 3)] == fingers
+            assert np.array_equal(info["privileged"]["object_position"], position)
+            touched += sum(fingers)
+        assert touched > 0  # the fingers reached the object
+    finally:
+        env.close()
+
+
 def test_object_sets_and_user_files():
     import pybullet_data
 

@@ -137,6 +137,16 @@ def test_policy_file_round_trip_and_bad_files(tmp_path, n_features):
     assert "scores" in damaged(lambda a: a.__setitem__("selector_layer1_weight", np.zeros((4, 2))) or
                                a.__setitem__("selector_layer1_bias", np.zeros(2)))
 
+    def set_metadata(arrays, **changes):
+        metadata = json.loads(str(arrays["metadata"]))
+        metadata.update(changes)
+        arrays["metadata"] = np.array(json.dumps(metadata))
+
+    # the metadata an export's schema checks (agents/policy_io.POLICY_METADATA), and the predictor's count
+    assert "env_kwargs must be a table" in damaged(lambda a: set_metadata(a, env_kwargs=0))
+    assert "seed" in damaged(lambda a: set_metadata(a, seed="x"))
+    assert "predictor_layers" in damaged(lambda a: set_metadata(a, predictor_layers=True))
+
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
 def test_deploy_runs_the_choice_block_for_block(tmp_path, n_features):

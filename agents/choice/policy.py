@@ -247,6 +247,8 @@ class GraspChoicePolicy:
         choice = ChoiceSettings(**settings)
         selector = SuccessModel.from_arrays(arrays, "selector", metadata.get("selector_layers"))
         layers = metadata.get("predictor_layers", 0)
+        if not (isinstance(layers, int) and not isinstance(layers, bool) and layers >= 0):
+            raise ValueError(f"{where}: predictor_layers must be a count of layers (0: no predictor), got {layers!r}")
         predictor = SuccessModel.from_arrays(arrays, "predictor", layers) if layers else None
         return cls(choice, selector, predictor, {k: v for k, v in metadata.items()
                                                  if k not in ("settings", "selector_layers", "predictor_layers")})

@@ -13,7 +13,7 @@ import numpy as np
 
 from bh8_gym.agents.choice.policy import FORMAT as CHOICE_FORMAT
 from bh8_gym.agents.deployment.numpy_policy import NumpyPolicy, read_npz
-from bh8_gym.agents.policy_io import PolicyFileError
+from bh8_gym.agents.policy_io import PolicyFileError, check_metadata
 from bh8_gym.agents.deployment.sb3_file import SB3Policy
 
 
@@ -81,5 +81,6 @@ def load_choice_policy(path: Path, arrays: dict):
                               "train it again") from None
     except RecursionError:
         raise PolicyFileError(f"{str(path)!r} is damaged: its metadata is nested too deep") from None
+    check_metadata(policy.metadata, f"{str(path)!r}'s metadata")  # env id, env kwargs, seed: as an export's
     policy.path = path
     return policy

@@ -188,6 +188,7 @@ class BH8LoopEnv(gym.Env):
             raise self._closed_error()
         self._feedback_block = self.simulation.cycle(block)
         self._cycles += 1
+        self.task.new_cycle()
         return self.interface.layout.decode_feedback(self._feedback_block)
 
     def __getstate__(self):

@@ -57,6 +57,9 @@ class GraspTask:
         self.visuals = visuals
         self.scene: GraspScene | None = None
         self.plant = None
+        # What this cycle's world gives, read once for the reward and the privileged entries alike.
+        self._object_position = self._touching = None
+        self._object_entries: list[float] = []  # the episode's object in the privileged entries
 
     def plant_parameters(self, params):
         return params
@@ -73,14 +76,32 @@ class GraspTask:
 
     def begin_episode(self, rng: np.random.Generator) -> None:
         self.scene.begin_episode(self.scene.sample_episode(rng))
+        self.new_cycle()
+        spec = self.scene.episode.spec
+        kind = [0.0] * (len(_KINDS) + 1)
+        kind[_KINDS.index(spec.kind) if spec.kind in _KINDS else len(_KINDS)] = 1.0
+        self._object_entries = kind + [extent * 10.0 for extent in self.scene.object_extents] + [
+            spec.mass or 0.0, spec.friction or 0.0]
+
+    def new_cycle(self) -> None:
+        """The world has moved on (the env ran a RealTime cycle): the queries read afresh."""
+        self._object_position = self._touching = None
+
+    def _position(self) -> tuple[float, float, float]:
+        """The object's position (world, metres), read once per cycle."""
+        if self._object_position is None:
+            self._object_position = self.plant.body_position(self.scene.object_body)
+        return self._object_position
 
     def _touching_fingers(self) -> tuple[set, bool]:
         """(the set of finger indices 0-2 touching the object, whether any part of the hand touches it),
-        from one contact query of the last physics step."""
-        links = self.plant.contacts_by_link(self.scene.object_body)
-        fingers = {self._finger_of_link.get(link) for link in links}
-        fingers.discard(None)
-        return fingers, bool(links)
+        from one contact query of the last physics step (once per cycle)."""
+        if self._touching is None:
+            links = self.plant.contacts_by_link(self.scene.object_body)
+            fingers = {self._finger_of_link.get(link) for link in links}
+            fingers.discard(None)
+            self._touching = fingers, bool(links)
+        return self._touching
 
     def _finger_contacts(self) -> np.ndarray:
         touching = np.zeros(3)
@@ -91,7 +112,7 @@ class GraspTask:
     def reward(self, values, elapsed: float, done: bool) -> tuple[float, dict, bool, bool]:
         """Reward (simulation only; uses privileged state), each term in info["reward_terms"]."""
         plant, w, body = self.plant, self.weights, self.scene.object_body
-        x, y, z = plant.body_position(body)
+        x, y, z = self._position()
         distance = 0.0
         for tip_x, tip_y, tip_z in plant.link_positions(self._tip_links):
             distance += ((tip_x - x) ** 2 + (tip_y - y) ** 2 + (tip_z - z) ** 2) ** 0.5
@@ -120,20 +141,14 @@ class GraspTask:
         one-hot of its kind (a mesh for anything not a primitive), its extents at rest (dm), mass
         (kg) and friction (`GRASP_PRIVILEGED_NAMES`): an asymmetric critic that knows the object
         can value a grasp chosen for it."""
-        position = np.asarray(self.plant.body_position(self.scene.object_body))
-        wrist, _ = self.plant.wrist_pose()
-        out[:3] = position - np.asarray(wrist)
-        out[3] = position[2] - self.scene.object_rest_z
-        out[4:7] = self._finger_contacts()
-        spec = self.scene.episode.spec
-        out[7:12] = 0.0
-        out[7 + (_KINDS.index(spec.kind) if spec.kind in _KINDS else len(_KINDS))] = 1.0
-        out[12:15] = np.asarray(self.scene.object_extents) * 10.0
-        out[15] = spec.mass or 0.0
-        out[16] = spec.friction or 0.0
+        x, y, z = self._position()
+        wrist_x, wrist_y, wrist_z = self.plant.wrist_pose()[0]
+        fingers = self._touching_fingers()[0]
+        out[:] = [x - wrist_x, y - wrist_y, z - wrist_z, z - self.scene.object_rest_z,
+                  *(1.0 if finger in fingers else 0.0 for finger in range(3)), *self._object_entries]
 
     def privileged_info(self) -> dict:
-        position = np.asarray(self.plant.body_position(self.scene.object_body))
+        position = np.asarray(self._position())
         return {
             "object_position": position,
             "object_rise": float(position[2] - self.scene.object_rest_z),
@@ -173,6 +188,9 @@ class ReachTask:
         episode = self.scene.sample_episode(rng)
         self.scene.begin_episode(episode)
         self.observation.set(episode.targets)
+
+    def new_cycle(self) -> None:
+        """The reach reads nothing of the world but the feedback block."""
 
     def set_targets(self, counts: Sequence[float]) -> None:
         self.scene.begin_episode(ReachEpisode(tuple(int(c) for c in counts)))

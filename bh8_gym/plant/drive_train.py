@@ -148,41 +148,41 @@ class DriveTrain:
         state = self._state
         state.held[joint] = False
         position = state.positions[joint]
-        velocity = state.velocities[joint]
-        slack = self._slack
         if high is None:
             high = self._joint_high[joint]
         if low is None:
             low = self._joint_low[joint]
         forward = sign * target
+        brake = self._brake_torque
         # (a joint told to wait, forward 0, is braked too: gravity must not turn it either way)
-        if forward >= 0.0 and sign * velocity >= forward * self._overrun_speed_fraction \
-                and sign * state.torques[joint] < force and self._brake_torque > force:
-            force = self._brake_torque
+        if forward >= 0.0 and brake > force and sign * state.torques[joint] < force \
+                and sign * state.velocities[joint] >= forward * self._overrun_speed_fraction:
+            force = brake
         # The back edge follows the joint only up to the front edge: a joint pushed past its front edge
         # (a limit gives a little under load) is held there, not followed on step by step.
+        window_low, window_high, slack = state.window_low, state.window_high, self._slack
         if sign > 0.0:
             back = position - slack
-            if back - state.window_low[joint] > slack or state.window_high[joint] != high:
+            if back - window_low[joint] > slack or window_high[joint] != high:
                 if back > high:
                     back = high
-                if back < state.window_low[joint]:
-                    back = state.window_low[joint]  # the back edge never moves back while closing
+                if back < window_low[joint]:
+                    back = window_low[joint]  # the back edge never moves back while closing
                 back = back if back > low else low
                 # (where a stop short of the joint's own, the palm, and the worm's back edge cross, the
                 # worm holds: the inner link, stopped by the palm at the outer link's angle, cannot
                 # wind the outer link back along the palm)
-                state.window_low[joint], state.window_high[joint] = back, (high if high > back else back)
+                window_low[joint], window_high[joint] = back, (high if high > back else back)
             reach = (high - position) / self.dt if position < high else 0.0
             target = target if target < reach else reach
         else:
             back = position + slack
-            if state.window_high[joint] - back > slack or state.window_low[joint] != low:
+            if window_high[joint] - back > slack or window_low[joint] != low:
                 if back < low:
                     back = low
-                if back > state.window_high[joint]:
-                    back = state.window_high[joint]  # nor forward while opening
-                state.window_low[joint], state.window_high[joint] = low, (back if back < high else high)
+                if back > window_high[joint]:
+                    back = window_high[joint]  # nor forward while opening
+                window_low[joint], window_high[joint] = low, (back if back < high else high)
             reach = (low - position) / self.dt if position > low else 0.0
             target = target if target > reach else reach
         state.target_velocities[joint] = target

@@ -104,9 +104,12 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         # The strain gauges measure the torque the outer joints transmit (§9.4), motor and worm together.
         for outer in OUTER_INDEX:
             p.enableJointForceTorqueSensor(self.hand_id, self.joint_indices[outer], True, physicsClientId=cid)
-        self._sent_windows = {}  # joint -> (low, high) last sent to PyBullet
+        self._forget_sent_windows()
+        # The last window of each joint that was not inverted (what PyBullet keeps; NaN: none yet).
+        self._valid_low, self._valid_high = [math.nan] * NUM_JOINTS, [math.nan] * NUM_JOINTS
         self._unit_masses = [p.getDynamicsInfo(self.hand_id, link, physicsClientId=cid)[0] for link in self._links]
         self._com_offset = p.getDynamicsInfo(self.hand_id, -1, physicsClientId=cid)[3]
+        self._com_inverse = p.invertTransform(self._com_offset, (0, 0, 0, 1))  # (wrist_pose)
         # F1 and F2 spread through one motor: a gear constraint keeps their angles equal.
         self._spread_gear = p.createConstraint(
             self.hand_id, self.joint_indices[0], self.hand_id, self.joint_indices[3], p.JOINT_GEAR,
@@ -130,6 +133,10 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         self._read_joints()
         for joint in WORM_JOINTS:  # unpowered: the worms hold the fingers where they are
             self._hold(joint)
+
+    def _forget_sent_windows(self) -> None:
+        """The worm windows PyBullet has are unknown (NaN): the next step sends each one."""
+        self._sent_low, self._sent_high = [math.nan] * NUM_JOINTS, [math.nan] * NUM_JOINTS
 
     def _apply_parameters(self) -> None:
         """Push `self.params` into PyBullet and derive the per-step constants (plain floats)."""
@@ -217,16 +224,39 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
             p.setJointMotorControlArray(self.hand_id, self.joint_indices, p.POSITION_CONTROL, *command,
                                         self._velocity_gains, client)
             self._sent_command = tuple(map(list, command))  # copies: the state lists are updated in place
-        sent, low, high = self._sent_windows, state.window_low, state.window_high
-        for joint in WORM_JOINTS:
-            window = (low[joint], high[joint])
-            if sent.get(joint) != window:
-                p.changeDynamics(self.hand_id, self.joint_indices[joint], jointLowerLimit=window[0],
-                                 jointUpperLimit=window[1], physicsClientId=client)
-                sent[joint] = window
-        p.stepSimulation(physicsClientId=client)
+        self._send_windows()
+        p.stepSimulation(client)  # (positional: see above)
         self._read_joints()
         self._update_after_step()
+
+    def _send_windows(self) -> None:
+        """Give PyBullet the worm windows this step needs: each one that changed, unless the joint is
+        strictly inside both the new window and the one PyBullet has. Bullet makes no solver row for a
+        limit the joint is inside of (btMultiBodyJointLimitConstraint::createConstraintRows skips a
+        row of positive distance), so such a change cannot act in this step and is sent once it can:
+        the same physics to the bit, and a closing finger, whose window edges move every step, costs
+        no changeDynamics. pybullet.changeDynamics ignores an inverted window (low > high), so the
+        last one that was not inverted stays in force."""
+        state, sent_low, sent_high = self._state, self._sent_low, self._sent_high
+        low, high, q = state.window_low, state.window_high, state.positions
+        valid_low, valid_high = self._valid_low, self._valid_high
+        for joint in WORM_JOINTS:
+            lower, upper = low[joint], high[joint]
+            if lower <= upper:
+                valid_low[joint], valid_high[joint] = lower, upper
+            else:
+                lower, upper = valid_low[joint], valid_high[joint]
+            was_lower, was_upper = sent_low[joint], sent_high[joint]
+            if lower == was_lower and upper == was_upper:
+                continue
+            if was_lower == was_lower:  # (NaN: PyBullet's window unknown)
+                position = q[joint]
+                if (lower == was_lower or (lower < position and was_lower < position)) and \
+                        (upper == was_upper or (position < upper and position < was_upper)):
+                    continue
+            p.changeDynamics(self.hand_id, self.joint_indices[joint], jointLowerLimit=lower, jointUpperLimit=upper,
+                             physicsClientId=self._client)
+            sent_low[joint], sent_high[joint] = lower, upper
 
     def set_joint_angles(self, angles, velocities=None) -> None:
         """Teleport the joints (radians, URDF order) with zero velocity (or `velocities`, rad/s);
@@ -247,7 +277,6 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
         state.latched_torque = [0.0] * NUM_JOINTS
         state.drive_capacity = [0.0] * 3
         self._read_joints()
-        state.previous_positions = state.positions
         for joint in WORM_JOINTS:  # the worms hold the fingers where they are now
             self._hold(joint)
 

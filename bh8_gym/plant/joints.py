@@ -58,7 +58,6 @@ class _PlantState:
     opening_peak: list = field(default_factory=lambda: [0.0] * 3)
     # Joint states of the last step, as PyBullet reported them (replaced whole each step).
     positions: tuple = (0.0,) * NUM_JOINTS
-    previous_positions: tuple = (0.0,) * NUM_JOINTS
     velocities: tuple = (0.0,) * NUM_JOINTS
     torques: tuple = (0.0,) * NUM_JOINTS  # what each joint motor applied
     outer_loads: tuple = (0.0,) * 3  # torque each outer joint transmits (motor and worm), + = against closing

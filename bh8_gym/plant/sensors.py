@@ -30,7 +30,6 @@ class Sensors:
         """Joint positions, velocities, applied torques and the outer joints' transmitted torques."""
         state = self._state
         joints = p.getJointStates(self.hand_id, self.joint_indices, self._client)  # (body, joints, physicsClientId)
-        state.previous_positions = state.positions
         state.positions, state.velocities, reactions, state.torques = zip(*joints)
         # The sensor gives the load the joint carries about its axis (z); a load against closing is +.
         state.outer_loads = (-reactions[2][5], -reactions[5][5], -reactions[7][5])

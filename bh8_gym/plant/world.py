@@ -76,7 +76,7 @@ class World:
     def wrist_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """The wrist frame's actual world pose: (position (3,), quaternion xyzw (4,))."""
         com_position, com_orientation = p.getBasePositionAndOrientation(self.hand_id, physicsClientId=self._client)
-        inverse = p.invertTransform(self._com_offset, (0, 0, 0, 1))
+        inverse = self._com_inverse
         position, orientation = p.multiplyTransforms(com_position, com_orientation, inverse[0], inverse[1])
         return np.array(position), np.array(orientation)
 
@@ -136,7 +136,7 @@ class World:
         self._renew_contact_pairs()
         self._state = self._saved[state_id].copy()
         self._sent_command = None  # resend the joint motor command and worm windows of the restored state
-        self._sent_windows = {}
+        self._forget_sent_windows()
         position, orientation = self._state.wrist_target
         p.changeConstraint(
             self._wrist_constraint, jointChildPivot=position, jointChildFrameOrientation=orientation,
