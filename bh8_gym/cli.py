@@ -18,6 +18,7 @@ SUBCOMMANDS = {
     "serve": ("bh8_gym.commands.serve", "serve the simulated hand's firmware on a pseudo-terminal"),
     "term": ("bh8_gym.commands.term", "interactive GCL terminal for a real or simulated hand"),
     "render": ("bh8_gym.commands.render", "render the simulated hand to a PNG"),
+    "calibrate": ("bh8_gym.commands.calibrate", "record a hand's calibration log and fit the simulated hand to it"),
     "train": ("bh8_gym.agents.training.train", "train a grasp policy (PPO or SAC)"),
     "sweep": ("bh8_gym.agents.sweep.command", "train seeds and hyperparameters as Ray Tune trials, locally or on a cluster"),
     "eval": ("bh8_gym.agents.evaluation.evaluate", "evaluate a policy or a scripted baseline"),

@@ -4,18 +4,20 @@ post-LOOP snapshot every episode starts from.
 One place builds what the environments, `bh8 serve` and the in-process `bh8sim://` port serve, so
 they all serve the same hand:
 
-- `build_plant(seed, objects, gui)`: the plant's default scene, or with `--object` SPEC strings the
-  palm-up scene with each object placed in the hand;
-- `build_firmware(state_dir, profile, seed, objects, gui)`: the firmware on `build_plant`'s plant
-  (`bh8 serve`, `bh8sim://`); `shutdown_firmware` persists its counters and closes the plant;
+- `build_plant(seed, objects, gui, hand, palm_up)`: the plant's default scene, or with `--object`
+  SPEC strings the palm-up scene with each object placed in the hand; `hand`: the PlantParameters
+  fields of a hand-parameters file (`--hand-parameters`, bh8_gym/calibration/hand_file.py);
+- `build_firmware(state_dir, profile, seed, objects, gui, hand)`: the firmware on `build_plant`'s
+  plant (`bh8 serve`, `bh8sim://`); `shutdown_firmware` persists its counters and closes the plant;
 - `LoopSimulation`: the environments' plant and firmware (a store in memory), their task's scene,
   the interface's setup script run and LOOP entered, and the snapshot each reset restores.
 """
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import pybullet
 
@@ -42,21 +44,23 @@ class FirmwareProtocolError(RuntimeError):
     """The emulated firmware answered something other than the expected block or prompt."""
 
 
-def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False) -> HandPlant:
+def build_plant(seed: int = 0, objects: Sequence[str] = (), gui: bool = False, hand: Mapping | None = None,
+                palm_up: bool | None = None) -> HandPlant:
     """The plant `bh8 serve` drives: the plant's default scene, or with `objects` (`--object`
-    SPEC strings) the palm-up scene above with each object placed. Raises ValueError naming a bad
-    spec (before any physics starts)."""
+    SPEC strings) the palm-up scene above with each object placed. `hand`: PlantParameters fields
+    of the hand itself (a hand-parameters file's, `bh8 serve --hand-parameters`); `palm_up`: the
+    palm-up scene even without objects (None: palm up when there are objects). Raises ValueError
+    naming a bad spec (before any physics starts)."""
     placements = []
     for text in objects:
         try:
             placements.append((text, parse_object_spec(text)))
         except ValueError as error:
             raise ValueError(f"object {text!r}: {error}") from None
-    params = None
-    if placements:
-        params = PlantParameters(
-            table=False, wrist_position=OBJECT_SCENE_WRIST_POSITION, wrist_orientation=OBJECT_SCENE_WRIST_ORIENTATION
-        )
+    params = PlantParameters(**dict(hand or {}))
+    if placements if palm_up is None else palm_up:
+        params = replace(params, table=False, wrist_position=OBJECT_SCENE_WRIST_POSITION,
+                         wrist_orientation=OBJECT_SCENE_WRIST_ORIENTATION)
     plant = HandPlant(params=params, seed=seed, gui=gui)
     try:
         for text, (spec, position) in placements:
@@ -96,6 +100,7 @@ def build_firmware(
     seed: int = 0,
     objects: Sequence[str] = (),
     gui: bool = False,
+    hand: Mapping | None = None,
 ) -> Firmware:
     """The firmware on `build_plant(seed, objects, gui)`, its store in `state_dir`.
 
@@ -106,7 +111,7 @@ def build_firmware(
     """
     if profile not in FIRMWARE_PROFILES:
         raise ValueError(f"firmware profile must be one of {FIRMWARE_PROFILES}, got {profile!r}")
-    plant = build_plant(seed, objects, gui)
+    plant = build_plant(seed, objects, gui, hand)
     try:
         firmware = Firmware(plant=plant, store_dir=None if state_dir is None else Path(state_dir), profile=profile, seed=seed)
     except BaseException:

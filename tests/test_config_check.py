@@ -192,6 +192,22 @@ def test_any_value_is_accepted_or_refused_naming_its_key(key, value):
     assert not (isinstance(value, float) and not math.isfinite(value))
 
 
+def test_a_hand_file_is_read_through_its_schema(tmp_path):
+    """[env_kwargs] hand_parameters (issue 40): a hand file `bh8 calibrate fit` wrote, or a table of
+    hand parameters, checked by the hand file's schema; a bad one named in one line."""
+    hand = tmp_path / "hand.toml"
+    hand.write_text("[hand]\nfinger_drive_efficiency = 0.45\nstrain_offsets = [111, 122, 133]\n")
+    check_config(_with(_base(), "env_kwargs", "hand_parameters", str(hand)))
+    check_config(_with(_base(), "env_kwargs", "hand_parameters", {"strain_gain": 110.0}))
+    hand.write_text("[hand]\nfinger_drive_efficiency = 4.5\n")
+    for value, message in ((str(hand), "finger_drive_efficiency must be a number in 0.02..1"),
+                           (str(tmp_path / "missing.toml"), "cannot read the hand-parameters file"),
+                           ({"time_step": 0.001}, "not a property of the hand"), (3, "the path of a hand file")):
+        with pytest.raises(ConfigError, match=message) as error:
+            check_config(_with(_base(), "env_kwargs", "hand_parameters", value))
+        assert str(error.value).startswith("[env_kwargs] hand_parameters") and "\n" not in str(error.value)
+
+
 def test_a_nested_key_with_a_line_break_is_quoted_in_a_one_line_message():
     """A key nested in a value is named as TOML would quote it: a line break in it (which the
     property test above found once) does not break the message in two."""

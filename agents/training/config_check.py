@@ -187,6 +187,30 @@ class Table:
 
 
 @dataclasses.dataclass(frozen=True)
+class HandFile:
+    """hand_parameters: a hand file (`bh8 calibrate fit -o FILE`) or a table of a hand's parameters,
+    read and checked through the file's own schema (bh8_gym/calibration/hand_file.py)."""
+
+    def problem(self, value) -> str | None:
+        """Why `value` cannot be used, or None."""
+        from bh8_gym.calibration.hand_file import HandFileError, hand_parameters_from
+
+        if not (isinstance(value, dict) or (isinstance(value, str) and 0 < len(value) <= 4096 and value.isprintable())):
+            return f"must be {self}, got {shown(value)}"
+        try:
+            hand_parameters_from(value)
+        except HandFileError as error:
+            return str(error)
+        return None
+
+    def accepts(self, value) -> bool:
+        return self.problem(value) is None
+
+    def __str__(self) -> str:
+        return "the path of a hand file (bh8 calibrate fit -o) or a table of hand parameters"
+
+
+@dataclasses.dataclass(frozen=True)
 class Unsupported:
     """A keyword SB3 takes that only a Python object can fill: a TOML config cannot give it."""
 
@@ -336,6 +360,7 @@ ENV_KEYWORDS = {
     "max_episode_steps": Integer(1, 10**7),
     "render_mode": Unsupported("training renders nothing"),
     "render_size": ListOf(Integer(1, 4096), 2, 2),
+    "hand_parameters": HandFile(),  # a calibrated hand (docs/hardware.md, bh8 calibrate)
 }
 TOP_LEVEL = {"algorithm": Text(ALGORITHMS), "env_id": Text(), "asymmetric_critic": Flag()}
 KNOWN_TABLES = (*TABLES, "pretrain", "sweep", "choice")
@@ -473,7 +498,11 @@ def _check_env_table(config: dict, table: str) -> None:
     for key, value in values.items():
         if known is not None and key not in known:
             raise ConfigError(f"[{table}] has no key {key!r} for {config['env_id']} (known: {', '.join(sorted(known))})")
-        if key in ENV_KEYWORDS and not ENV_KEYWORDS[key].accepts(value):
+        if isinstance(ENV_KEYWORDS.get(key), HandFile):
+            problem = ENV_KEYWORDS[key].problem(value)
+            if problem is not None:
+                raise ConfigError(f"[{table}] {key}: {problem}")
+        elif key in ENV_KEYWORDS and not ENV_KEYWORDS[key].accepts(value):
             raise _bad(f"[{table}]", key, ENV_KEYWORDS[key], value)
 
 

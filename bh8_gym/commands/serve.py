@@ -29,6 +29,7 @@ from pathlib import Path
 
 import gymnasium as gym
 
+from bh8_gym.calibration.hand_file import HandFileError, load_hand_parameters
 from bh8_gym.cli import handling_signals, integer_argument, json_object_argument
 from bh8_gym.envs import register_envs
 from bh8_gym.nvstore import StoreError, StoreWarning
@@ -120,6 +121,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
              "survives its reopening the port, however fast (docs/clients.md); removed on exit; refused if "
              "PATH exists (unless a killed bh8 serve left it)",
     )
+    parser.add_argument(
+        "--hand-parameters", metavar="FILE", type=Path, default=None,
+        help="the hand's parameters from a hand file (`bh8 calibrate fit -o FILE`, or a practice hand from "
+             "`bh8 calibrate draw`; docs/hardware.md); with --env it is the env's hand_parameters keyword",
+    )
     parser.add_argument("--seed", type=integer_argument(0), default=0,
                         help="seed of the plant's randomised constants; with --env, the env's reset seed (default 0)")
     parser.add_argument("--gui", action="store_true", help="show the PyBullet GUI (needs a display)")
@@ -168,10 +174,16 @@ def run(args: argparse.Namespace) -> int:
         print("bh8 serve: --env-kwargs needs --env", file=sys.stderr)
         return 2
     state_dir = args.state if args.state is not None else default_state_dir()
+    try:
+        hand = None if args.hand_parameters is None else load_hand_parameters(args.hand_parameters).values
+    except HandFileError as error:
+        print(f"bh8 serve: --hand-parameters: {error}", file=sys.stderr)
+        return 2
     with _store_warnings_on_stderr():
         try:
             with _native_stdout_to_stderr():
-                firmware = build_firmware(state_dir, args.firmware or "4.3", args.seed, tuple(args.objects), args.gui)
+                firmware = build_firmware(state_dir, args.firmware or "4.3", args.seed, tuple(args.objects), args.gui,
+                                          hand)
         except ValueError as error:
             print(f"bh8 serve: {error}", file=sys.stderr)
             return 2
@@ -209,9 +221,15 @@ def _run_env(args: argparse.Namespace) -> int:
         print(f"bh8 serve: --env serves the env's own hand unpaced; it cannot take {', '.join(conflicts)} "
               "(set env options with --env-kwargs)", file=sys.stderr)
         return 2
+    env_kwargs = dict(args.env_kwargs or {})
+    if args.hand_parameters is not None:
+        if "hand_parameters" in env_kwargs:
+            print("bh8 serve: --hand-parameters and --env-kwargs' hand_parameters: give one", file=sys.stderr)
+            return 2
+        env_kwargs["hand_parameters"] = str(args.hand_parameters)
     try:
         with _native_stdout_to_stderr():
-            env, firmware = build_env_firmware(args.env, args.seed, args.env_kwargs, args.gui)
+            env, firmware = build_env_firmware(args.env, args.seed, env_kwargs, args.gui)
     except ValueError as error:
         print(f"bh8 serve: {error}", file=sys.stderr)
         return 2

@@ -40,9 +40,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from bh8_gym.calibration.hand_file import hand_parameters_from
 from bh8_gym.envs.randomization import (
     PlantRandomizer,
     RandomizationRanges,
+    calibrated_ranges,
     physics_generator,
     sample_plant_parameters,
     sample_processing_time,
@@ -117,6 +119,7 @@ class BH8LoopEnv(gym.Env):
         plant_parameters,
         render_mode: str | None,
         render_size: tuple[int, int],
+        hand_parameters=None,
     ):
         if render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
@@ -140,8 +143,18 @@ class BH8LoopEnv(gym.Env):
         self._obs = np.zeros(len(interface.observation_fields), dtype=np.float32)
         self._n_host = interface.host_observation_size
 
-        self._base_parameters = task.plant_parameters(
-            PlantParameters() if plant_parameters is None else PlantParameters.from_overrides(plant_parameters))
+        base = PlantParameters() if plant_parameters is None else PlantParameters.from_overrides(plant_parameters)
+        self.hand_parameters = hand_parameters_from(hand_parameters)
+        if self.hand_parameters is not None:
+            # A calibrated hand (`bh8 calibrate fit`): its measured values, and randomisation about them.
+            overridden = sorted(set(self.hand_parameters.values) & set(plant_parameters or {}))
+            if overridden:
+                raise ValueError(f"plant_parameters sets {', '.join(overridden)}, which hand_parameters "
+                                 f"({self.hand_parameters.source}) sets too: give each once")
+            base = self.hand_parameters.plant_parameters(base)
+            self.randomization = calibrated_ranges(self.randomization, self.hand_parameters.values,
+                                                   self.hand_parameters.uncertainty)
+        self._base_parameters = task.plant_parameters(base)
         self._build_world()
 
         self._prev_action: list[int] = [0] * len(interface.layout.control_fields)

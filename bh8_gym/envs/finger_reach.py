@@ -50,7 +50,8 @@ class BH8FingerReachEnv(BH8LoopEnv):
       ``firmware_profile``, ``episode_seconds`` (1.0), ``safety``, ``privileged``: the loop
       (envs.interfaces.reach_interface has the defaults);
     - ``targets`` (ReachRanges), ``tolerance`` (ReachTolerance), ``success_bonus`` (1.0);
-    - ``randomize`` (True), ``randomization``, ``plant_parameters``, ``render_mode``, ``render_size``.
+    - ``randomize`` (True), ``randomization``, ``plant_parameters``, ``hand_parameters`` (a hand file
+      from `bh8 calibrate fit`, as BH8Grasp-v0's), ``render_mode``, ``render_size``.
     """
 
     env_id = "BH8FingerReach-v0"
@@ -64,6 +65,7 @@ class BH8FingerReachEnv(BH8LoopEnv):
         randomize: bool = True,
         randomization: RandomizationRanges | None = None,
         plant_parameters=None,
+        hand_parameters=None,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
         **loop_options,
@@ -74,7 +76,8 @@ class BH8FingerReachEnv(BH8LoopEnv):
         self.success_bonus = float(success_bonus)
         task = ReachTask(interface.task, self.ranges, self.tolerance, self.success_bonus)
         super().__init__(interface=interface, task=task, randomize=randomize, randomization=randomization,
-                         plant_parameters=plant_parameters, render_mode=render_mode, render_size=render_size)
+                         plant_parameters=plant_parameters, render_mode=render_mode, render_size=render_size,
+                         hand_parameters=hand_parameters)
 
     @property
     def targets(self) -> np.ndarray:

@@ -62,7 +62,9 @@ class BH8GraspEnv(BH8LoopEnv):
     - ``arm`` (ArmSchedule), ``shake`` (False: ±1 cm at 2 Hz during hold);
     - ``placement`` (PlacementRanges), ``success_height`` (0.03 m), ``reward_weights``
       (GraspRewardWeights);
-    - ``randomize`` (True), ``randomization`` (RandomizationRanges), ``plant_parameters``;
+    - ``randomize`` (True), ``randomization`` (RandomizationRanges), ``plant_parameters``,
+      ``hand_parameters`` (a hand file from `bh8 calibrate fit`: the hand's measured parameters, and
+      randomisation about them, randomization.calibrated_ranges);
     - ``privileged`` (False), ``safety`` (SafetyEnvelope), ``render_mode``, ``render_size``.
     """
 
@@ -79,6 +81,7 @@ class BH8GraspEnv(BH8LoopEnv):
         randomize: bool = True,
         randomization: RandomizationRanges | None = None,
         plant_parameters=None,
+        hand_parameters=None,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (320, 240),
         **loop_options,
@@ -96,4 +99,5 @@ class BH8GraspEnv(BH8LoopEnv):
         task = GraspTask(self.object_set, self.placement, self.arm, self.success_height, self.weights,
                          visuals=render_mode is not None)
         super().__init__(interface=interface, task=task, randomize=randomize, randomization=randomization,
-                         plant_parameters=plant_parameters, render_mode=render_mode, render_size=render_size)
+                         plant_parameters=plant_parameters, render_mode=render_mode, render_size=render_size,
+                         hand_parameters=hand_parameters)

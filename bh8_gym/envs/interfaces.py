@@ -147,9 +147,10 @@ HOST_INTERFACES = {"BH8Grasp-v0": grasp_interface, "BH8FingerReach-v0": reach_in
 # The environments' keyword arguments that only the simulator uses (scene, reward, randomisation, rendering).
 SIMULATOR_OPTIONS = {
     "BH8Grasp-v0": frozenset({"object_set", "object_files", "placement", "success_height", "reward_weights",
-                              "randomize", "randomization", "plant_parameters", "render_mode", "render_size"}),
+                              "randomize", "randomization", "plant_parameters", "hand_parameters", "render_mode",
+                              "render_size"}),
     "BH8FingerReach-v0": frozenset({"targets", "tolerance", "success_bonus", "randomize", "randomization",
-                                    "plant_parameters", "render_mode", "render_size"}),
+                                    "plant_parameters", "hand_parameters", "render_mode", "render_size"}),
 }
 
 

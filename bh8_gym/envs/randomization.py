@@ -65,9 +65,17 @@ class RandomizationRanges:
     # Seconds of firmware processing per RealTime cycle (absolute): our 1 ms is an estimate (SPEC.md §8),
     # so a policy must tolerate a 68HC811 somewhat faster or slower than we guessed.
     processing_time: tuple[float, float] = (0.7e-3, 1.5e-3)
+    # A calibrated hand (its gauges' offsets measured, `calibrated_ranges`): each finger's offset is
+    # drawn within ± this many counts of its own instead of from `strain_offsets`. None: not calibrated.
+    strain_offset_jitter: int | None = None
 
     def __post_init__(self):
         for item in fields(self):
+            if item.name == "strain_offset_jitter":
+                jitter = self.strain_offset_jitter
+                if jitter is not None and (isinstance(jitter, bool) or not isinstance(jitter, int) or not 0 <= jitter <= 40):
+                    raise ValueError(f"strain_offset_jitter must be None or an integer 0..40, got {jitter!r}")
+                continue
             low, high = getattr(self, item.name)
             if not (np.isfinite(low) and np.isfinite(high) and 0 <= low <= high):
                 raise ValueError(f"randomisation range {item.name} must be 0 <= low <= high, got {(low, high)!r}")
@@ -81,9 +89,39 @@ def sample_plant_parameters(base, rng: np.random.Generator, ranges: Randomizatio
         values[name] = getattr(base, name) * float(rng.uniform(low, high))
     for name in ABSOLUTE_FIELDS:
         values[name] = float(rng.uniform(*getattr(ranges, name)))
-    low, high = ranges.strain_offsets
-    values["strain_offsets"] = tuple(int(v) for v in rng.integers(int(low), int(high) + 1, size=3))
+    if ranges.strain_offset_jitter is not None and base.strain_offsets is not None:
+        jitter = ranges.strain_offset_jitter
+        draws = rng.integers(-jitter, jitter + 1, size=3)  # one draw of three, as below: the order stays
+        values["strain_offsets"] = tuple(int(min(255, max(0, o + d))) for o, d in zip(base.strain_offsets, draws))
+    else:
+        low, high = ranges.strain_offsets
+        values["strain_offsets"] = tuple(int(v) for v in rng.integers(int(low), int(high) + 1, size=3))
     return replace(base, **values)
+
+
+# Randomisation about a calibrated hand (`bh8 calibrate fit`'s hand file): a fitted field's factor
+# range is ± CALIBRATED_SIGMAS of its uncertainty, at least ± CALIBRATED_MIN_SPREAD (the model's own
+# error: the fit replays its log to a fraction of a percent, not exactly), never wider than before.
+CALIBRATED_SIGMAS = 3.0
+CALIBRATED_MIN_SPREAD = 0.03
+
+
+def calibrated_ranges(ranges: RandomizationRanges, values: dict, uncertainty: dict) -> RandomizationRanges:
+    """`ranges` narrowed about a calibrated hand: its PlantParameters `values` become the base (the
+    factors' centre) and each field with an `uncertainty` (one standard deviation) gets a range from
+    it; the gauges' offsets are drawn about the measured ones."""
+    narrowed = {}
+    for name in SCALED_FIELDS:
+        sigma, value = uncertainty.get(name), values.get(name)
+        if sigma is None or not value:
+            continue
+        low, high = getattr(ranges, name)
+        spread = max(CALIBRATED_MIN_SPREAD, CALIBRATED_SIGMAS * float(sigma) / abs(float(value)))
+        narrowed[name] = (max(low, 1.0 - spread), min(high, 1.0 + spread)) if low <= 1.0 <= high else (low, high)
+    if "strain_offsets" in values:
+        sigmas = uncertainty.get("strain_offsets") or (0.5, 0.5, 0.5)
+        narrowed["strain_offset_jitter"] = int(min(40, max(1, np.ceil(CALIBRATED_SIGMAS * max(sigmas)))))
+    return replace(ranges, **narrowed)
 
 
 def sample_processing_time(rng: np.random.Generator, ranges: RandomizationRanges = RandomizationRanges()) -> float:

@@ -258,13 +258,17 @@ class HandPlant(DriveTrain, Clutch, Sensors, World):
                              physicsClientId=self._client)
             sent_low[joint], sent_high[joint] = lower, upper
 
-    def set_joint_angles(self, angles) -> None:
-        """Teleport the joints (radians, URDF order) with zero velocity; clutch engaged. For tests and resets."""
+    def set_joint_angles(self, angles, velocities=None) -> None:
+        """Teleport the joints (radians, URDF order) with zero velocity (or `velocities`, rad/s);
+        clutch engaged. For tests, resets and the calibration's replay (its anchors)."""
         angles = np.asarray(angles, dtype=float)
         if angles.shape != (NUM_JOINTS,) or not np.all(np.isfinite(angles)):
             raise PlantError(f"set_joint_angles needs 8 finite angles, got {angles!r}")
-        for joint, angle in zip(self.joint_indices, angles):
-            p.resetJointState(self.hand_id, joint, float(angle), 0.0, physicsClientId=self._client)
+        velocities = np.zeros(NUM_JOINTS) if velocities is None else np.asarray(velocities, dtype=float)
+        if velocities.shape != (NUM_JOINTS,) or not np.all(np.isfinite(velocities)):
+            raise PlantError(f"set_joint_angles needs 8 finite velocities, got {velocities!r}")
+        for joint, angle, velocity in zip(self.joint_indices, angles, velocities):
+            p.resetJointState(self.hand_id, joint, float(angle), float(velocity), physicsClientId=self._client)
         state = self._state
         state.engaged = [True] * 3
         state.locked = [True] * 3

@@ -7,10 +7,12 @@ URL: ``bh8sim://[?option=value[&option=value...]]`` with options
 - ``state=DIR``: the non-volatile store (default: a temporary directory made on open and removed
   on close, so every open without ``state`` is a factory-fresh hand and tests stay independent);
 - ``object=SPEC`` (repeatable): an object placed as by ``bh8 serve --object SPEC`` (percent-encode
-  any ``&``, ``#`` or ``%`` in it).
+  any ``&``, ``#`` or ``%`` in it);
+- ``hand=FILE``: the hand's parameters from a hand file, as ``bh8 serve --hand-parameters FILE``.
 
-Time: the simulated clock advances only while the host waits for the hand, so replies come as
-fast as the physics runs and are reproducible for a given sequence of calls. ``read(n)`` runs the
+Time: the simulated clock advances only while the host waits for the hand and the hand is busy,
+so replies come as fast as the physics runs and are reproducible for a given sequence of calls;
+an idle hand's clock stands still, as `bh8 serve`'s does. ``read(n)`` runs the
 firmware until n bytes exist, the firmware waits for input (no further byte can come), or the
 port's ``timeout`` has passed in SIMULATED seconds; it never blocks on the wall clock, so it cannot
 hang. With ``timeout=None`` a read that lacks bytes runs the firmware until it waits for input,
@@ -35,15 +37,16 @@ from bh8_gym.simulator import build_firmware, shutdown_firmware
 
 SCHEME = "bh8sim"
 # Simulated seconds run per firmware call while a read with a timeout waits for bytes: a reply is
-# picked up within this of being sent, and a motion that ends inside a chunk lets the (idle) world
-# run on to the chunk's end; short enough to be negligible, long enough to keep call overhead small.
+# picked up within this of being sent; short enough to be negligible, long enough to keep call
+# overhead small.
 RUN_CHUNK_S = 0.005
 # Simulated seconds an empty poll (in_waiting, read with timeout 0) lets a busy hand run.
 POLL_ADVANCE_S = 0.01
 
 
 def parse_url(url: str) -> dict:
-    """The options of a bh8sim:// URL: {"seed": int, "firmware": str, "state": str|None, "objects": tuple}.
+    """The options of a bh8sim:// URL: {"seed": int, "firmware": str, "state": str|None, "objects": tuple,
+    "hand": str|None}.
 
     Raises SerialException naming the offending part.
     """
@@ -52,7 +55,7 @@ def parse_url(url: str) -> dict:
         raise SerialException(f"expected a URL of the form {SCHEME}://?seed=N&firmware=4.3&state=DIR, got {url!r}")
     if parts.netloc or parts.path not in ("", "/"):
         raise SerialException(f"{SCHEME}:// takes options only (after '?'), got {parts.netloc + parts.path!r} in {url!r}")
-    options = {"seed": 0, "firmware": "4.3", "state": None, "objects": ()}
+    options = {"seed": 0, "firmware": "4.3", "state": None, "objects": (), "hand": None}
     objects = []
     try:
         pairs = urllib.parse.parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
@@ -79,9 +82,13 @@ def parse_url(url: str) -> dict:
             options["state"] = value
         elif name == "object":
             objects.append(value)
+        elif name == "hand":
+            if not value:
+                raise SerialException(f"hand needs a hand file, got an empty value in {url!r}")
+            options["hand"] = value
         else:
             raise SerialException(
-                f"unknown option {name!r} in {url!r}; known: seed, firmware, state, object"
+                f"unknown option {name!r} in {url!r}; known: seed, firmware, state, object, hand"
             )
     options["objects"] = tuple(objects)
     return options
@@ -107,7 +114,12 @@ class Serial(SerialBase):
             self._temporary_state = tempfile.mkdtemp(prefix="bh8sim-")
             state = self._temporary_state
         try:
-            self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"])
+            hand = None
+            if options["hand"] is not None:
+                from bh8_gym.calibration.hand_file import load_hand_parameters
+
+                hand = load_hand_parameters(options["hand"]).values
+            self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"], hand=hand)
         except (ValueError, OSError) as error:
             self._remove_temporary_state()
             raise SerialException(f"cannot open {self._port!r}: {error}") from error
@@ -152,7 +164,10 @@ class Serial(SerialBase):
         received += firmware.read()
         while len(received) < wanted and budget_s > 0.0 and not firmware.idle:
             step = RUN_CHUNK_S if budget_s > RUN_CHUNK_S else budget_s
-            firmware.run_for(step)
+            # Up to `step`, but not past the moment the hand waits for input: its clock then stands
+            # still until the host writes, as `bh8 serve`'s does, so polls cost no simulated time
+            # and a log recorded here replays exactly (bh8 calibrate).
+            firmware.run_until_idle(step)
             budget_s -= step
             received += firmware.read()
 

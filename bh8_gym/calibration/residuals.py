@@ -1,0 +1,199 @@
+"""What the fit minimises: the differences between the recorded hand's signals and a replay's,
+each scaled to one unit of its own kind (`ResidualModel`).
+
+- finger positions: LFAP of each finger in the sweeps' lift phases (a weak drive lifting the finger
+  against its weight), in % of the motor's range (loop_interface.FULL_RANGE_COUNTS);
+- spread positions: LFAP of the spread in the sweeps' lift and return phases, % of its range;
+- strains (reported, not fitted by the replays): each finger's mean gauge reading over each
+  squeeze's hold, in counts (a finger pressing an object jitters by a few counts from cycle to cycle);
+- timing: how long each supervisory motion took, in 10 ms (a log of a real hand only: the
+  simulated hand's clock stands still while the host waits, so its times say nothing).
+
+The fingers' returns (stiff, helped by their weight) are not compared: there the simulated finger
+lurches from cycle to cycle (its overrun brake), and the replay sets every motor to the recorded
+positions when the next phase starts (replay.py).
+
+The gauges enter linearly: reading = offset + gain x load (the torque about the outer joint, §9.4).
+Each replay runs with `REPLAY_OFFSETS` and the default gain; the offsets that fit best are read off
+the rest phases (fingers still, nothing pressing: the median of the recorded reading minus the
+replay's load reading), the gain off the squeezes (`strain_gain`: the recorded readings above their
+offsets against the replay's loads, a line through the origin).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bh8_gym.calibration.excitation import PHASE_HOLD, PHASE_LIFT, PHASE_RETURN, REST_PHASES
+from bh8_gym.calibration.replay import Signals
+from bh8_gym.loop_interface import FULL_RANGE_COUNTS
+from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
+
+REPLAY_OFFSETS = (120, 120, 120)  # gauge offsets every replay runs with (mid-range: nothing clips)
+REPLAY_GAIN = 100.0  # and its gain: PlantParameters' default, counts per N·m
+GAIN_LOAD_SPAN = 0.03  # N·m: squeezes whose loads span less than this tell no gain
+TIMING_SCALE_S = 0.01
+MOVED_COUNTS = 300  # a motor that moved less than this in the phases that tell its parameters did not move
+STRAIN_EVIDENCE_COUNTS = 3  # a squeeze whose gauges moved less than this from rest tells nothing of their gain
+
+
+def _phase(name: str) -> str:
+    return name.rsplit(".", 1)[-1] if "." in name else ""
+
+
+@dataclass
+class Evidence:
+    """What the log holds for each group of parameters, and which motors never moved."""
+
+    lifts: bool
+    spread: bool
+    squeezes: bool
+    timing: bool
+    still_motors: tuple
+
+
+class ResidualModel:
+    """Residual vectors of replays against one recorded hand (module docstring)."""
+
+    def __init__(self, observed: Signals, hand_clock: str | None):
+        self.observed = observed
+        phases = np.array([_phase(name) for name in observed.segments])
+        self.squeeze_of = [name.rsplit(".", 1)[0] for name in observed.segments]
+        columns = {m: i for i, m in enumerate(observed.motors)}
+        self.finger_columns = [columns[m] for m in FINGER_MOTORS if m in columns]
+        self.spread_column = columns.get(SPREAD_MOTOR)
+        self.lift = phases == PHASE_LIFT
+        self.sweep = self.lift | (phases == PHASE_RETURN)
+        self.rest = np.isin(phases, REST_PHASES)
+        self.hold = phases == PHASE_HOLD
+        self.holds = sorted({self.squeeze_of[i] for i in np.flatnonzero(self.hold)})
+        self.timing = hand_clock == "wall" and len(observed.durations) > 0
+        self.ranges = np.array([FULL_RANGE_COUNTS[m] for m in observed.motors], dtype=float)
+        self.evidence = self._evidence()
+        # A motor that did not move where the excitation moves it (a fault, an obstacle, a stuck
+        # spread) is left out: what it did is no motion the simulated motor can be fitted to.
+        still = self.evidence.still_motors
+        self.finger_columns = [c for c, m in zip(range(len(observed.motors)), observed.motors)
+                               if m in FINGER_MOTORS and m not in still]
+        if SPREAD_MOTOR in still:
+            self.spread_column = None
+
+    def _moved(self, column: int, mask: np.ndarray) -> bool:
+        values = self.observed.positions[mask, column]
+        return values.size > 0 and float(values.max() - values.min()) >= MOVED_COUNTS
+
+    def _evidence(self) -> Evidence:
+        still = []
+        for motor, column in zip(self.observed.motors, range(len(self.observed.motors))):
+            mask = self.lift if motor != SPREAD_MOTOR else self.sweep
+            if not self._moved(column, mask):
+                still.append(motor)
+        lifts = any(self._moved(c, self.lift) for c in self.finger_columns)
+        spread = self.spread_column is not None and self._moved(self.spread_column, self.sweep)
+        squeezes = False
+        if self.holds and self.rest.any():
+            rest = np.nanmedian(self.observed.strains[self.rest], axis=0)
+            for name in self.holds:
+                held = np.nanmedian(self.observed.strains[self._hold_mask(name)], axis=0)
+                squeezes = squeezes or bool(np.nanmax(np.abs(held - rest)) >= STRAIN_EVIDENCE_COUNTS)
+        return Evidence(lifts, spread, squeezes, self.timing, tuple(still))
+
+    def _hold_mask(self, name: str) -> np.ndarray:
+        return self.hold & np.array([squeeze == name for squeeze in self.squeeze_of])
+
+    # -- offsets -----------------------------------------------------------------------------
+
+    def offsets(self, replayed: Signals) -> tuple[int, int, int]:
+        """The gauge offsets that make the replay's rest readings the recorded ones."""
+        rest = self.rest if self.rest.any() else np.ones(len(self.rest), dtype=bool)
+        recorded = np.nanmedian(self.observed.strains[rest], axis=0)
+        loads = np.nanmedian(replayed.strains[rest], axis=0) - np.array(REPLAY_OFFSETS)
+        offsets = np.round(recorded - loads)
+        return tuple(int(min(255, max(0, value))) if np.isfinite(value) else 120 for value in offsets)
+
+    def offset_uncertainty(self, replayed: Signals) -> tuple[float, float, float]:
+        rest = self.rest if self.rest.any() else np.ones(len(self.rest), dtype=bool)
+        spread = np.nanstd(self.observed.strains[rest] - replayed.strains[rest], axis=0)
+        return tuple(float(max(0.5, value)) for value in spread)  # rounded to counts: half a count at best
+
+    # -- residuals ---------------------------------------------------------------------------
+
+    def strain_gain(self, replayed: Signals) -> tuple[float, float] | None:
+        """The gauges' gain (counts per N·m) and its standard deviation read off the squeezes'
+        holds: each finger's mean recorded reading above its offset against the replay's mean load
+        (its reading above REPLAY_OFFSETS over REPLAY_GAIN); None without squeezes whose loads span
+        GAIN_LOAD_SPAN."""
+        if not self.holds:
+            return None
+        offsets = np.array(self.offsets(replayed), dtype=float)
+        loads, readings = [], []
+        for name in self.holds:
+            mask = self._hold_mask(name)
+            recorded = self.observed.strains[mask]
+            usable = np.all((recorded > 0) & (recorded < 255), axis=1)  # a clipped reading says nothing
+            if not usable.any():
+                continue
+            loads.append((np.nanmean(replayed.strains[mask][usable], axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
+            readings.append(np.nanmean(recorded[usable], axis=0) - offsets)
+        if not loads:
+            return None
+        load, reading = np.concatenate(loads), np.concatenate(readings)
+        keep = np.isfinite(load) & np.isfinite(reading)
+        load, reading = load[keep], reading[keep]
+        if load.size < 3 or np.ptp(load) < GAIN_LOAD_SPAN:
+            return None
+        gain = float(load @ reading / (load @ load))
+        spread = float(np.sqrt(np.sum((reading - gain * load) ** 2) / (load.size - 1) / (load @ load)))
+        return gain, spread
+
+    def groups(self, replayed: Signals, gain: float = REPLAY_GAIN) -> dict[str, np.ndarray]:
+        """The scaled residuals of one replay, by signal (module docstring); the squeezes' readings
+        as a gauge of `gain` would give them."""
+        recorded = self.observed
+        if replayed.positions.shape != recorded.positions.shape:
+            raise ValueError(f"the replay gave {replayed.positions.shape[0]} blocks, the log has "
+                             f"{recorded.positions.shape[0]}")
+        difference = (replayed.positions - recorded.positions) / (0.01 * self.ranges)
+        groups = {}
+        if self.finger_columns:
+            groups["finger positions"] = difference[self.lift][:, self.finger_columns].ravel()
+        if self.spread_column is not None:
+            groups["spread positions"] = difference[self.sweep][:, self.spread_column]
+        if self.holds:
+            offsets = np.array(self.offsets(replayed))
+            means = []
+            for name in self.holds:
+                mask = self._hold_mask(name)
+                load = (np.nanmean(replayed.strains[mask], axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN
+                means.append(offsets + gain * load - np.nanmean(recorded.strains[mask], axis=0))
+            groups["strains"] = np.nan_to_num(np.concatenate(means))
+        if self.timing and len(replayed.durations) == len(recorded.durations):
+            groups["timing"] = (replayed.durations - recorded.durations) / TIMING_SCALE_S
+        return groups
+
+    def vector(self, replayed: Signals, groups=None) -> np.ndarray:
+        """The residuals of `groups` (default: all) in one vector."""
+        found = self.groups(replayed)
+        return np.concatenate([found[name] for name in (groups or found) if name in found])
+
+    def summary(self, replayed: Signals, gain: float = REPLAY_GAIN) -> dict[str, float]:
+        """RMS of each signal in its own unit: position % of range per motor, strain counts, timing s."""
+        recorded = self.observed
+        out = {}
+        difference = (replayed.positions - recorded.positions) / (0.01 * self.ranges)
+        for motor, column in zip(recorded.motors, range(len(recorded.motors))):
+            mask = self.sweep if motor == SPREAD_MOTOR else self.lift
+            if mask.any() and column in (*self.finger_columns, self.spread_column):
+                out[f"motor {motor} position, % of range"] = float(np.sqrt(np.mean(difference[mask, column] ** 2)))
+        groups = self.groups(replayed, gain)
+        if "strains" in groups:
+            out["strain in the squeezes, counts"] = float(np.sqrt(np.mean(groups["strains"] ** 2)))
+        if "timing" in groups:
+            out["motion times, s"] = float(np.sqrt(np.mean((groups["timing"] * TIMING_SCALE_S) ** 2)))
+        return out
+
+    def position_rms(self, replayed: Signals) -> float:
+        """The replay's position RMS over every motor's compared phases, % of the motor's range."""
+        values = [value for name, value in self.summary(replayed).items() if name.endswith("% of range")]
+        return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
