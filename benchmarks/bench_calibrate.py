@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bh8_gym.calibration.hand_file import load_hand_parameters
+from bh8_gym.hand_file import load_hand_parameters
 from bh8_gym.calibration.log_format import read_log
 from bh8_gym.calibration.scene import DEFAULT_CALIBRATION_OBJECT
 from bh8_gym.plant import PlantParameters

@@ -6,7 +6,7 @@ they all serve the same hand:
 
 - `build_plant(seed, objects, gui, hand, palm_up)`: the plant's default scene, or with `--object`
   SPEC strings the palm-up scene with each object placed in the hand; `hand`: the PlantParameters
-  fields of a hand-parameters file (`--hand-parameters`, bh8_gym/calibration/hand_file.py);
+  fields of a hand-parameters file (`--hand-parameters`, bh8_gym/hand_file.py);
 - `build_firmware(state_dir, profile, seed, objects, gui, hand)`: the firmware on `build_plant`'s
   plant (`bh8 serve`, `bh8sim://`); `shutdown_firmware` persists its counters and closes the plant;
 - `LoopSimulation`: the environments' plant and firmware (a store in memory), their task's scene,

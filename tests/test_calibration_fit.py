@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from bh8_gym.calibration.fit import fit
-from bh8_gym.calibration.hand_file import HandParameters, load_hand_parameters, write_hand_parameters
+from bh8_gym.hand_file import HandParameters, load_hand_parameters, write_hand_parameters
 from bh8_gym.calibration.log_format import LogWriter, read_log
 from bh8_gym.calibration.recorder import Recorder
 from bh8_gym.calibration.replay import observed, replay
@@ -124,5 +124,5 @@ def test_fit_refuses_bad_logs_in_one_line(tmp_path, capsys):
         error = capsys.readouterr().err.strip()
         assert error.startswith("bh8 calibrate fit: ") and "\n" not in error and "Traceback" not in error
     assert main(["calibrate", "fit", str(tmp_path / "missing.jsonl"), "-o", str(tmp_path / "hand.toml")]) == 2
-    assert "cannot read the calibration log" in capsys.readouterr().err
+    assert "cannot be read" in capsys.readouterr().err
     assert not (tmp_path / "hand.toml").exists()

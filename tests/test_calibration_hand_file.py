@@ -1,16 +1,18 @@
-"""Hand files (bh8_gym/calibration/hand_file.py, issue 40 items 2-3): written atomically and read
+"""Hand files (bh8_gym/hand_file.py, issue 40 items 2-3): written atomically and read
 back through a strict schema (known keys only, each in its range, the scene's settings refused);
 used by both environments (`hand_parameters=`), with domain randomisation about the fitted values;
 by `bh8 serve --hand-parameters` and bh8sim://?hand=.
 """
 from __future__ import annotations
 
+import os
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
 import bh8_gym  # noqa: F401  (registers the envs)
-from bh8_gym.calibration.hand_file import (
+from bh8_gym.hand_file import (
     HandFileError,
     HandParameters,
     load_hand_parameters,
@@ -63,11 +65,15 @@ def test_the_schema_refuses_with_one_line(text, message):
 
 
 def test_reads_are_bounded(tmp_path):
-    with pytest.raises(HandFileError, match="regular file"):
+    with pytest.raises(HandFileError, match="is a folder"):
         load_hand_parameters(tmp_path)
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(HandFileError, match="not a regular file"):  # refused without waiting for a writer
+        load_hand_parameters(fifo)
     big = tmp_path / "big.toml"
     big.write_text("# " + "x" * 70_000 + "\n[hand]\n")
-    with pytest.raises(HandFileError, match="more than the"):
+    with pytest.raises(HandFileError, match="larger than"):
         load_hand_parameters(big)
 
 
@@ -110,7 +116,7 @@ def test_the_envs_take_a_hand_file(env_id, tmp_path):
         randomized.close()
     with pytest.raises(ValueError, match="which hand_parameters .* sets too"):
         gym.make(env_id, hand_parameters=str(path), plant_parameters={"finger_drive_efficiency": 0.3})
-    with pytest.raises(ValueError, match="cannot read the hand-parameters file"):
+    with pytest.raises(ValueError, match="hand-parameters file .* cannot be read"):
         gym.make(env_id, hand_parameters=str(tmp_path / "missing.toml"))
 
 

@@ -189,11 +189,11 @@ class Table:
 @dataclasses.dataclass(frozen=True)
 class HandFile:
     """hand_parameters: a hand file (`bh8 calibrate fit -o FILE`) or a table of a hand's parameters,
-    read and checked through the file's own schema (bh8_gym/calibration/hand_file.py)."""
+    read and checked through the file's own schema (bh8_gym/hand_file.py)."""
 
     def problem(self, value) -> str | None:
         """Why `value` cannot be used, or None."""
-        from bh8_gym.calibration.hand_file import HandFileError, hand_parameters_from
+        from bh8_gym.hand_file import HandFileError, hand_parameters_from
 
         if not (isinstance(value, dict) or (isinstance(value, str) and 0 < len(value) <= 4096 and value.isprintable())):
             return f"must be {self}, got {shown(value)}"

@@ -17,7 +17,8 @@ docs/modelling.md what a log can tell.
 - `fit`: the fitted parameters, SciPy's least squares, the noise probe, the uncertainties;
 - `rollouts`: replays in parallel (local processes, or Ray tasks on a cluster);
 - `report`: the text report, the plot, the hand file's provenance;
-- `hand_file`: `hand.toml`, its strict schema and atomic write (`HandParameters`);
+- the fit writes `hand.toml` through `bh8_gym.hand_file` (its strict schema and atomic write,
+  `HandParameters`; outside this package because the envs and `bh8sim://` read it too);
 - `practice`: practice hands drawn away from the defaults (`bh8 calibrate draw`).
 
 `record` runs nothing but the client (it simulates nothing); `fit` needs the calibrate extra

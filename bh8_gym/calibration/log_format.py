@@ -32,12 +32,12 @@ import json
 import math
 import os
 import re
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from bh8_gym.protocol import BAUD_RATES, FIRMWARE_PROFILES, MOTORS
 from bh8_gym.realtime_codec import LoopLayout, MotorFlags
+from bh8_gym.safe_files import read_bounded
 
 LOG_FORMAT = "bh8-calibration-log"
 LOG_VERSION = 1
@@ -172,38 +172,7 @@ class CalibrationLog:
 
 def read_log(path: str | os.PathLike) -> CalibrationLog:
     """Read and check a calibration log (module docstring); CalibrationLogError says what is wrong."""
-    return parse_log(read_bounded(path, MAX_LOG_BYTES, "calibration log"), str(path))
-
-
-def read_bounded(path: str | os.PathLike, limit: int, what: str, error=CalibrationLogError) -> bytes:
-    """The bytes of a regular file of at most `limit` bytes (a FIFO, device or directory is refused
-    without blocking on it)."""
-    name = str(path)
-    try:
-        descriptor = os.open(name, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    except OSError as failure:
-        raise error(f"{name}: cannot read the {what}: {failure.strerror or failure}") from None
-    try:
-        info = os.fstat(descriptor)
-        if not stat.S_ISREG(info.st_mode):
-            raise error(f"{name}: the {what} must be a regular file, not a "
-                        f"{'directory' if stat.S_ISDIR(info.st_mode) else 'special file (FIFO, device or socket)'}")
-        if info.st_size > limit:
-            raise error(f"{name}: the {what} is {info.st_size:,} bytes, more than the {limit:,} allowed")
-        chunks, total = [], 0
-        while True:
-            chunk = os.read(descriptor, 1 << 20)
-            if not chunk:
-                break
-            total += len(chunk)
-            if total > limit:
-                raise error(f"{name}: the {what} is more than the {limit:,} bytes allowed")
-            chunks.append(chunk)
-    except OSError as failure:
-        raise error(f"{name}: cannot read the {what}: {failure.strerror or failure}") from None
-    finally:
-        os.close(descriptor)
-    return b"".join(chunks)
+    return parse_log(read_bounded(path, MAX_LOG_BYTES, "calibration log", CalibrationLogError), str(path))
 
 
 def _refuse_constant(name: str):

@@ -151,13 +151,14 @@ def _fit(args: argparse.Namespace) -> int:
         print(f"{name}: needs the calibrate extra ({error.name} is missing): pip install \"bh8-gym[calibrate]\"",
               file=sys.stderr)
         return 2
-    from bh8_gym.calibration.hand_file import HandFileError, HandParameters, write_hand_parameters
-    from bh8_gym.calibration.log_format import CalibrationLogError, read_bounded, MAX_LOG_BYTES, parse_log
+    from bh8_gym.hand_file import HandFileError, HandParameters, write_hand_parameters
+    from bh8_gym.calibration.log_format import CalibrationLogError, MAX_LOG_BYTES, parse_log
+    from bh8_gym.safe_files import read_bounded
     from bh8_gym.calibration.replay import ReplayMismatch, observed
 
     plot = args.plot or args.output.with_suffix(".png")
     try:
-        data = read_bounded(args.log, MAX_LOG_BYTES, "calibration log")
+        data = read_bounded(args.log, MAX_LOG_BYTES, "calibration log", CalibrationLogError)
         log = parse_log(data, str(args.log))
     except CalibrationLogError as error:
         print(f"{name}: {error}", file=sys.stderr)
@@ -241,7 +242,7 @@ class _progress_bar:
 def _draw(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from bh8_gym.calibration.hand_file import HandFileError, HandParameters, write_hand_parameters
+    from bh8_gym.hand_file import HandFileError, HandParameters, write_hand_parameters
     from bh8_gym.calibration.practice import draw_hand
 
     values = draw_hand(np.random.default_rng(args.seed), everything=args.everything)

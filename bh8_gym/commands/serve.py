@@ -29,7 +29,7 @@ from pathlib import Path
 
 import gymnasium as gym
 
-from bh8_gym.calibration.hand_file import HandFileError, load_hand_parameters
+from bh8_gym.hand_file import HandFileError, load_hand_parameters
 from bh8_gym.cli import handling_signals, integer_argument, json_object_argument
 from bh8_gym.envs import register_envs
 from bh8_gym.nvstore import StoreError, StoreWarning

@@ -40,7 +40,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from bh8_gym.calibration.hand_file import hand_parameters_from
+from bh8_gym.hand_file import hand_parameters_from
 from bh8_gym.envs.randomization import (
     PlantRandomizer,
     RandomizationRanges,

@@ -116,7 +116,7 @@ class Serial(SerialBase):
         try:
             hand = None
             if options["hand"] is not None:
-                from bh8_gym.calibration.hand_file import load_hand_parameters
+                from bh8_gym.hand_file import load_hand_parameters
 
                 hand = load_hand_parameters(options["hand"]).values
             self.firmware = build_firmware(state, options["firmware"], options["seed"], options["objects"], hand=hand)

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bh8_gym.atomic_files import atomic_write
-from bh8_gym.calibration.log_format import read_bounded
 from bh8_gym.plant.parameters import PlantError, PlantParameters
+from bh8_gym.safe_files import read_bounded
 
 HAND_FORMAT = "bh8-hand-parameters/1"
 MAX_HAND_FILE_BYTES = 64 << 10
@@ -181,7 +181,7 @@ def parse_hand_parameters(text: str, source: str = "<hand parameters>") -> HandP
 
 def load_hand_parameters(path: str | os.PathLike) -> HandParameters:
     """Read and check a hand-parameters file (module docstring)."""
-    data = read_bounded(path, MAX_HAND_FILE_BYTES, "hand-parameters file", error=HandFileError)
+    data = read_bounded(path, MAX_HAND_FILE_BYTES, "hand-parameters file", HandFileError)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
