@@ -93,15 +93,18 @@ def read_json_bounded(path: str | os.PathLike, limit: int = SMALL_FILE_LIMIT_BYT
 
 
 def parse_json(text: str | bytes, what: str, error: type[ValueError] = FileError, constants: bool = False) -> Any:
-    """`json.loads` with NaN/Infinity refused (unless `constants`) and a RecursionError (nesting
-    past the interpreter's limit) an `error`, not a traceback."""
+    """`json.loads` with NaN/Infinity refused (unless `constants`), and a RecursionError (nesting
+    past the interpreter's limit) or any other ValueError (an integer of more than 4300 digits is
+    one) an `error`, not a traceback."""
 
     def refuse(constant: str):
         raise error(f"{what} holds {constant}, which is not JSON")
 
     try:
         return json.loads(text, parse_constant=None if constants else refuse)
-    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+    except error:
+        raise
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
         raise error(f"{what} is not valid JSON ({str(exc)[:200]})") from None
 
 

@@ -78,3 +78,16 @@ def test_the_bounded_reader_reads_a_regular_file_and_no_more_than_its_limit(tmp_
         read_bounded(path, 99)
     with pytest.raises(FileError, match="cannot be read"):
         read_bounded(tmp_path / "missing", 10)
+
+
+def test_json_that_python_cannot_read_is_the_callers_error_not_a_traceback(tmp_path):
+    """An integer of more than 4300 digits is a ValueError of json.loads, not a JSONDecodeError."""
+    from bh8_gym.agents.policy_io import PolicyFileError, find_run_metadata
+    from bh8_gym.safe_files import FileError, parse_json
+
+    for text in ('{"seed": ' + "9" * 5000 + "}", '{"seed": NaN}', "[" * 100_000, "{"):
+        with pytest.raises(FileError, match="sweep.json"):
+            parse_json(text, "sweep.json")
+    (tmp_path / "run.json").write_text('{"seed": ' + "9" * 5000 + "}")
+    with pytest.raises(PolicyFileError, match="not valid JSON"):
+        find_run_metadata(tmp_path / "model.zip")

@@ -87,7 +87,8 @@ def test_foreign_files_are_named_for_what_they_are(tmp_path):
     with pytest.raises(CalibrationLogError, match="bh8 deploy --log"):
         read_log(deploy)
     for name, content in (("empty", b""), ("binary", b"\x89PNG\r\n\x1a\n\x00\x00"), ("json", b"[1, 2]\n"),
-                          ("text", b"hello world\n")):
+                          ("text", b"hello world\n"), ("nan", b'{"kind": NaN}\n'),
+                          ("huge number", b'{"kind": ' + b"9" * 5000 + b"}\n")):
         path = tmp_path / name
         path.write_bytes(content)
         with pytest.raises(CalibrationLogError, match=str(path)):

@@ -146,6 +146,7 @@ def test_policy_file_round_trip_and_bad_files(tmp_path, n_features):
     assert "env_kwargs must be a table" in damaged(lambda a: set_metadata(a, env_kwargs=0))
     assert "seed" in damaged(lambda a: set_metadata(a, seed="x"))
     assert "predictor_layers" in damaged(lambda a: set_metadata(a, predictor_layers=True))
+    assert "layers must be" in damaged(lambda a: set_metadata(a, selector_layers=True))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")

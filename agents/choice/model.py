@@ -74,7 +74,7 @@ class SuccessModel:
 
     @classmethod
     def from_arrays(cls, arrays: dict, prefix: str, layers: int) -> "SuccessModel":
-        if not (isinstance(layers, int) and 1 <= layers <= MAX_LAYERS):
+        if not (isinstance(layers, int) and not isinstance(layers, bool) and 1 <= layers <= MAX_LAYERS):
             raise ValueError(f"{prefix}: layers must be 1..{MAX_LAYERS}, got {layers!r}")
         return cls(arrays[f"{prefix}_mean"], arrays[f"{prefix}_std"],
                    [arrays[f"{prefix}_layer{i}_weight"] for i in range(layers)],

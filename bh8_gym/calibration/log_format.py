@@ -37,7 +37,7 @@ from pathlib import Path
 
 from bh8_gym.protocol import BAUD_RATES, FIRMWARE_PROFILES, MOTORS
 from bh8_gym.realtime_codec import LoopLayout, MotorFlags
-from bh8_gym.safe_files import read_bounded
+from bh8_gym.safe_files import parse_json, read_bounded
 
 LOG_FORMAT = "bh8-calibration-log"
 LOG_VERSION = 1
@@ -175,10 +175,6 @@ def read_log(path: str | os.PathLike) -> CalibrationLog:
     return parse_log(read_bounded(path, MAX_LOG_BYTES, "calibration log", CalibrationLogError), str(path))
 
 
-def _refuse_constant(name: str):
-    raise ValueError(f"{name} is not a number a log holds")
-
-
 def parse_log(data: bytes, name: str = "<log>") -> CalibrationLog:
     """A CalibrationLog from the bytes of a log file (CalibrationLogError if they are not one)."""
     if not isinstance(data, (bytes, bytearray)):
@@ -224,12 +220,14 @@ def _decode_line(raw: bytes, number: int, name: str) -> dict:
         raise CalibrationLogError(f"{where}: {len(raw):,} bytes, longer than any record ({MAX_LINE_BYTES:,})")
     try:
         text = raw.decode("ascii")
-        record = json.loads(text, parse_constant=_refuse_constant)
     except UnicodeDecodeError:
         raise CalibrationLogError(f"{where}: not ASCII text; not a log of `bh8 calibrate record`") from None
-    except (ValueError, RecursionError) as error:
-        first = "" if number > 1 else "; not a log of `bh8 calibrate record`"
-        raise CalibrationLogError(f"{where}: not a JSON record ({str(error)[:120]}){first}") from None
+    try:
+        record = parse_json(text, where, CalibrationLogError)
+    except CalibrationLogError as error:
+        if number > 1:
+            raise
+        raise CalibrationLogError(f"{error}; not a log of `bh8 calibrate record`") from None
     if not isinstance(record, dict):
         raise CalibrationLogError(f"{where}: a record must be a JSON object, got {type(record).__name__}")
     return record
