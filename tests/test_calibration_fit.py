@@ -126,3 +126,102 @@ def test_fit_refuses_bad_logs_in_one_line(tmp_path, capsys):
     assert main(["calibrate", "fit", str(tmp_path / "missing.jsonl"), "-o", str(tmp_path / "hand.toml")]) == 2
     assert "cannot be read" in capsys.readouterr().err
     assert not (tmp_path / "hand.toml").exists()
+
+
+class _Groups:
+    """A stand-in for ResidualModel over stand-in replays: a replay *is* its residual groups."""
+
+    @staticmethod
+    def groups(signals):
+        return signals
+
+
+class _Replays:
+    """A stand-in for fit._Evaluator: the residual groups of a point from `table` (by the point's
+    coordinates), with the model above."""
+
+    model = _Groups()
+
+    def __init__(self, table):
+        self.table = table
+
+    def signals(self, points):
+        return [self.table[tuple(sorted((k, v) for k, v in p.items() if v != 0.0))] for p in points]
+
+
+def test_a_parameter_the_5_percent_test_misses_is_kept_when_the_log_tells_it_from_its_default():
+    """Issue 40, seeds 1 and 7: a spread near its stall duty replays with so much scatter that a 5 %
+    step does not stand out, though the fit found it 25 % from the default and it replays the log
+    five times closer there; set back to the default, the replay moves by far more than the
+    scatter and gets worse, so it stays fitted. One whose default replays as well stays untold."""
+    from bh8_gym.calibration.fit import FIT_PARAMETERS, _told_from_default
+
+    drive, friction = FIT_PARAMETERS[1], FIT_PARAMETERS[2]
+    at = {"spread_drive_efficiency": 0.22, "spread_friction_torque": -0.01}
+    rng = np.random.default_rng(0)
+    fitted = rng.normal(0.0, 0.8, 400)  # the fitted replay: RMS 0.8 % of range
+    table = {
+        tuple(sorted(at.items())): {"spread positions": fitted},
+        # the drive back at its default: the spread lags by 4 % of range
+        (("spread_friction_torque", -0.01),): {"spread positions": fitted + 4.0},
+        # the friction's ratio back at its default: a change within the scatter, no better, no worse
+        (("spread_drive_efficiency", 0.22),): {"spread positions": fitted[::-1].copy()},
+    }
+    scatter = {"spread positions": 0.8}
+    told = _told_from_default(_Replays(table), at, [drive, friction], scatter)
+    assert told == [drive]
+    # Closer to the log at the default than at the fit: not kept, however far the replay moved.
+    table[(("spread_friction_torque", -0.01),)] = {"spread positions": 0.1 * fitted}
+    assert _told_from_default(_Replays(table), at, [drive], scatter) == []
+    assert _told_from_default(_Replays(table), at, [], scatter) == []
+
+
+def test_a_practice_hand_draws_the_gauges_gain_too(tmp_path):
+    """`bh8 calibrate draw`: every fitted parameter and the gauges' gain within ±30 % of its default,
+    the gain drawn after the rest (a seed's other values are those it drew before the gain was)."""
+    from bh8_gym.calibration.practice import draw_hand
+    from bh8_gym.plant.parameters import PlantParameters
+
+    defaults = PlantParameters()
+    for seed in range(40):
+        values = draw_hand(np.random.default_rng(seed))
+        for name in ("finger_drive_efficiency", "spread_drive_efficiency", "spread_friction_torque", "strain_gain"):
+            assert abs(values[name] / getattr(defaults, name) - 1.0) <= 0.30, (seed, name)
+        rng = np.random.default_rng(seed)
+        before = {name: float(getattr(defaults, name)) * float(rng.uniform(0.7, 1.3))
+                  for name in ("finger_drive_efficiency", "spread_drive_efficiency", "spread_friction_torque")}
+        assert values["strain_offsets"] == tuple(int(v) for v in rng.integers(100, 141, size=3))
+        assert all(values[name] == before[name] for name in before)
+    gains = [draw_hand(np.random.default_rng(seed))["strain_gain"] for seed in range(40)]
+    assert np.ptp(gains) > 30.0  # drawn, not the default
+    assert main(["calibrate", "draw", "--seed", "3", "-o", str(tmp_path / "hidden.toml")]) == 0
+    assert load_hand_parameters(tmp_path / "hidden.toml").values["strain_gain"] == pytest.approx(gains[3])
+
+
+def test_the_squeezes_tell_the_gauges_gain(tmp_path):
+    """Palm-up with the calibration cube (docs/hardware.md): the squeezes come first, while the cube
+    stands where it was put (the spread's sweeps swing F1's and F2's knuckles over the palm and push
+    it about), so the fingertips grip it and the gauges read loads that differ from one squeeze to
+    the next by far more than GAIN_LOAD_SPAN; read off the replay of the recorded hand, the gain is
+    the hidden one (issue 40: drawn within ±30 %, identified)."""
+    from urllib.parse import quote
+
+    from bh8_gym.calibration.residuals import GAIN_LOAD_SPAN, REPLAY_GAIN, REPLAY_OFFSETS, ResidualModel
+    from bh8_gym.calibration.scene import DEFAULT_CALIBRATION_OBJECT
+
+    hidden = tmp_path / "hidden.toml"
+    write_hand_parameters(hidden, HandParameters({"strain_gain": 76.0, "strain_offsets": (131, 104, 117)}))
+    path = tmp_path / "cube.jsonl"
+    with BarrettHand(f"bh8sim://?seed=0&hand={hidden}&object={quote(DEFAULT_CALIBRATION_OBJECT)}") as hand:
+        complete, reason = Recorder(hand, path, "palm-up", DEFAULT_CALIBRATION_OBJECT, scale=0.05).run()
+    assert complete, reason
+    log = read_log(path)
+    model = ResidualModel(observed(log), log.hand_clock)
+    assert model.evidence.squeezes and len(model.holds) == 3
+    replayed = replay(log, {"strain_offsets": REPLAY_OFFSETS})  # the hidden hand moves as the default one
+    loads = [np.mean(replayed.strains[model._hold_mask(name)], axis=0) for name in model.holds]
+    loads = (np.array(loads) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN
+    assert np.ptp(loads) > 3 * GAIN_LOAD_SPAN and loads.min() > 0.05  # N·m: the fingertips press the cube
+    gain, sigma = model.strain_gain(replayed)
+    assert gain == pytest.approx(76.0, rel=0.05) and sigma < 0.05 * gain
+    assert model.offsets(replayed) == (131, 104, 117)

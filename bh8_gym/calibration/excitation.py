@@ -3,21 +3,25 @@
 It is built to make the parameters the fit looks for show in the log, inside the safety envelope,
 in motions whose outcome depends smoothly on them (the fit compares the log with replays):
 
-1. set-up: factory parameters (FDEF), fingers holding their position (HOLD 1), then HI;
-2. supervisory moves of the fingers and the spread at three velocities (their durations time the
+1. set-up: factory parameters (FDEF), fingers holding their position (HOLD 1), HI, the LOOP flags
+   (every motor, velocity and gain bytes out, strain and absolute position back);
+2. with a calibration object on the palm, in LOOP (`SqueezeLaw`): squeezes of it at three motor
+   duties (the gauges read the squeeze: their gain), each finger stopping if its gauge nears the
+   envelope's limit. First, while the object stands where it was put: later the spread swings the
+   lifted F1 and F2 over the palm's centre and pushes it off the palm (`CLEAR_SEGMENT`);
+3. supervisory moves of the fingers and the spread at two velocities (their durations time the
    motors on a real hand);
-3. in LOOP (every motor, velocity and gain bytes out, strain and absolute position back):
-   - the clock probe: one block, the host waits `PROBE_WAIT_S`, one more: a real hand's finger
-     ran on meanwhile, a simulated hand's clock stood still (log_format: "clock");
+4. in LOOP, with an object first one sweep that pushes it off the palm (`CLEAR_SEGMENT`, not
+   compared: an object pushed about makes the spread's replay jump), then
    - sweeps (`SweepLaw`): the fingers lifted against their weight at one weak LOOP velocity and
      gain per segment, then brought back stiffly; the spread driven out and back at its own
      velocity and gain. How fast a weak drive lifts a finger tells the drive's strength; how fast
      the spread goes at low gains tells its drive against its friction. Every motor comes to rest
      between phases;
-   - with a calibration object on the palm (`SqueezeLaw`): squeezes of it at three motor duties
-     (the gauges read the squeeze: their gain), each finger stopping if its gauge nears the
-     envelope's limit;
-4. fingers back open (M), then `bh8 calibrate record` leaves the hand as it found it.
+5. fingers back open (M), then `bh8 calibrate record` leaves the hand as it found it.
+
+Each LOOP starts with the clock probe: one block, the host waits `PROBE_WAIT_S`, one more: a real
+hand's finger ran on meanwhile, a simulated hand's clock stood still (log_format: "clock").
 
 Every LOOP byte stays in the envelope (|LCV| <= SafetyEnvelope.max_velocity with LCVC 1); the
 fingers' sweeps stay between SWEEP_LOW and SWEEP_HIGH, clear of a calibration object resting on
@@ -32,7 +36,7 @@ from dataclasses import dataclass
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 EXCITATION_NAME = "bh8-excitation"
-EXCITATION_VERSION = 1
+EXCITATION_VERSION = 2  # 2: the squeezes before the moves and sweeps
 BAUD = 38400  # RealTime cycles of about 7 ms (SPEC.md §6), the environments' rate
 LOOP_MOTORS = "1234"
 # The LOOP's flags on every motor (FSET before LOOP): velocity and gain bytes out; strain and
@@ -66,6 +70,11 @@ RETURN_VELOCITY, RETURN_GAIN = 60, 150
 # coupling, docs/modelling.md), and the replay sets the simulated motors to the recorded positions
 # there, at rest (replay.py: anchors).
 REST_CYCLES = 20
+# With a calibration object: a sweep before the others, not compared (residuals.py), whose spread
+# swings the lifting F1 and F2 over the palm and pushes the object off it (the moves only nudge it):
+# pushed about, a different way in every replay, it made the spread's replay jump by hundreds of
+# counts from a billionth of a change.
+CLEAR_SEGMENT = "clear"
 PHASE_LIMIT_CYCLES = 400  # the longest a phase waits for a motor to reach its end
 # The phases a segment record names after its part ("sweep3.lift"): replay.py sets the simulated
 # motors to the recorded positions where a lift or return starts, residuals.py compares by phase.
@@ -110,18 +119,24 @@ def _cycles(count: int, scale: float) -> int:
 
 
 def excitation_program(scale: float = 1.0, calibration_object: str | None = None) -> list:
-    """The excitation's parts in order: Commands before and after one LOOP of Sweeps and Squeezes."""
+    """The excitation's parts in order: Commands, and the LOOP parts (Squeezes, Sweeps) between them."""
     if not 0.01 <= scale <= 100.0:
         raise ValueError(f"scale must be 0.01..100, got {scale!r}")
     moves = []
     for velocity in SUPERVISORY_VELOCITIES:
-        moves += [f"1234FSET MCV {velocity} MOV {velocity}", f"123M {SWEEP_HIGH}", "123FGET P", f"123M {SWEEP_LOW}",
-                  "123FGET P", f"4M {SPREAD_HIGH}", "4FGET P", f"4M {SPREAD_LOW}", "4FGET P"]
+        moves += [f"1234FSET MCV {velocity} MOV {velocity}", f"123M {SWEEP_HIGH}", "123FGET P", f"4M {SPREAD_HIGH}",
+                  "4FGET P", f"123M {SWEEP_LOW}", "123FGET P", f"4M {SPREAD_LOW}", "4FGET P"]
     flags = " ".join(f"{name} {value}" for name, value in LOOP_FLAGS.items())
-    program = [
-        Commands("setup", ("1234FDEF", "123FSET HOLD 1", "PSET LFT 0 LFDPD 0", "1234HI")),
-        Commands("moves", (*moves, f"1234FSET {flags}")),
-    ]
+    program = [Commands("setup", ("1234FDEF", "123FSET HOLD 1", "PSET LFT 0 LFDPD 0", "1234HI", f"1234FSET {flags}"))]
+    # The squeezes first, in a LOOP of their own, while the calibration object stands where the lab
+    # put it (the spread past about 1,000 counts swings F1 and F2 over it); CLEAR_SEGMENT then
+    # pushes it off the palm before the compared sweeps.
+    if calibration_object is not None:
+        for index, gain in enumerate((48, 100, 160)):
+            program.append(Squeeze(f"squeeze{index + 1}", gain, _cycles(150, scale)))
+    program.append(Commands("moves", tuple(moves)))
+    if calibration_object is not None:
+        program.append(Sweep(CLEAR_SEGMENT, (60, 40), (40, 150), _cycles(400, scale)))
     # Finger (LCV, LCPG) while lifting, spread (LCV, LCPG), run together: the fingers' weight and
     # the spread's friction are told apart by their own motors. Weak finger gains (the weight tells
     # the drive's strength) and spread gains from where it barely overcomes its friction up.
@@ -131,9 +146,6 @@ def excitation_program(scale: float = 1.0, calibration_object: str | None = None
     ]
     for index, (finger, spread) in enumerate(sweeps):
         program.append(Sweep(f"sweep{index + 1}", finger, spread, _cycles(900, scale)))
-    if calibration_object is not None:
-        for index, gain in enumerate((48, 100, 160)):
-            program.append(Squeeze(f"squeeze{index + 1}", gain, _cycles(150, scale)))
     program.append(Commands("finish", ("1234FGET P", f"123M {OPEN_POSITION}", f"4M {SPREAD_LOW}", "1234FGET P")))
     return program
 

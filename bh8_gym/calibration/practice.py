@@ -19,11 +19,13 @@ UNFITTED = tuple(TIED) + tuple(p.name for p in CHECKED)
 def draw_hand(rng: np.random.Generator, spread: float = DRAW_SPREAD, everything: bool = False) -> dict:
     """PlantParameters fields of a practice hand: each fitted parameter (and with `everything` the
     others a hand differs in) its default times a factor uniform in 1 ± `spread`, the gauges'
-    offsets uniform in 100..140 (SPEC.md §1)."""
+    offsets uniform in 100..140 (SPEC.md §1), and the gauges' gain like the fitted parameters."""
     if not 0.0 <= spread < 1.0:
         raise ValueError(f"spread must be in [0, 1), got {spread!r}")
     defaults = PlantParameters()
     names = FITTED + (UNFITTED if everything else ())
     values = {name: float(getattr(defaults, name)) * float(rng.uniform(1.0 - spread, 1.0 + spread)) for name in names}
     values["strain_offsets"] = tuple(int(v) for v in rng.integers(100, 141, size=3))
+    # drawn last, so a seed's other values are those it drew before the gain was drawn too
+    values["strain_gain"] = float(defaults.strain_gain) * float(rng.uniform(1.0 - spread, 1.0 + spread))
     return values

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bh8_gym.calibration.excitation import PHASE_HOLD, PHASE_LIFT, PHASE_RETURN, REST_PHASES
+from bh8_gym.calibration.excitation import CLEAR_SEGMENT, PHASE_HOLD, PHASE_LIFT, PHASE_RETURN, REST_PHASES
 from bh8_gym.calibration.replay import Signals
 from bh8_gym.loop_interface import FULL_RANGE_COUNTS
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
@@ -58,13 +58,18 @@ class ResidualModel:
 
     def __init__(self, observed: Signals, hand_clock: str | None):
         self.observed = observed
-        phases = np.array([_phase(name) for name in observed.segments])
+        # CLEAR_SEGMENT's phases are not compared (an object pushed about: excitation.py)
+        phases = np.array(["" if name.split(".")[0] == CLEAR_SEGMENT else _phase(name) for name in observed.segments])
         self.squeeze_of = [name.rsplit(".", 1)[0] for name in observed.segments]
         columns = {m: i for i, m in enumerate(observed.motors)}
         self.finger_columns = [columns[m] for m in FINGER_MOTORS if m in columns]
         self.spread_column = columns.get(SPREAD_MOTOR)
         self.lift = phases == PHASE_LIFT
         self.sweep = self.lift | (phases == PHASE_RETURN)
+        # The spread is compared where the fingers lift (smoothly) only: while they return (lurching,
+        # see above) a billionth of a change anywhere in the hand moves a spread near its stall
+        # duty by a hundred counts, and the fit would chase that scatter.
+        self.spread_compared = self.lift
         self.rest = np.isin(phases, REST_PHASES)
         self.hold = phases == PHASE_HOLD
         self.holds = sorted({self.squeeze_of[i] for i in np.flatnonzero(self.hold)})
@@ -119,11 +124,13 @@ class ResidualModel:
 
     # -- residuals ---------------------------------------------------------------------------
 
-    def strain_gain(self, replayed: Signals) -> tuple[float, float] | None:
+    def strain_gain(self, replayed: Signals, others: tuple = ()) -> tuple[float, float] | None:
         """The gauges' gain (counts per N·m) and its standard deviation read off the squeezes'
         holds: each finger's mean recorded reading above its offset against the replay's mean load
-        (its reading above REPLAY_OFFSETS over REPLAY_GAIN); None without squeezes whose loads span
-        GAIN_LOAD_SPAN."""
+        (its reading above REPLAY_OFFSETS over REPLAY_GAIN), the loads averaged over `replayed` and
+        `others` (replays a billionth away: where a fingertip settles on the object, and so how the
+        squeeze's torque splits between the links, differs from one replay to the next by up to
+        10 %); None without squeezes whose loads span GAIN_LOAD_SPAN."""
         if not self.holds:
             return None
         offsets = np.array(self.offsets(replayed), dtype=float)
@@ -134,7 +141,8 @@ class ResidualModel:
             usable = np.all((recorded > 0) & (recorded < 255), axis=1)  # a clipped reading says nothing
             if not usable.any():
                 continue
-            loads.append((np.nanmean(replayed.strains[mask][usable], axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
+            held = [np.nanmean(r.strains[mask][usable], axis=0) for r in (replayed, *others)]
+            loads.append((np.mean(held, axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
             readings.append(np.nanmean(recorded[usable], axis=0) - offsets)
         if not loads:
             return None
@@ -159,7 +167,7 @@ class ResidualModel:
         if self.finger_columns:
             groups["finger positions"] = difference[self.lift][:, self.finger_columns].ravel()
         if self.spread_column is not None:
-            groups["spread positions"] = difference[self.sweep][:, self.spread_column]
+            groups["spread positions"] = difference[self.spread_compared][:, self.spread_column]
         if self.holds:
             offsets = np.array(self.offsets(replayed))
             means = []

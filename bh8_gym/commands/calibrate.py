@@ -65,7 +65,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     fit.add_argument("-o", "--output", type=Path, required=True, help="the hand file to write (TOML)")
     fit.add_argument("--plot", type=Path, default=None,
                      help="PNG of logged against simulated traces (default: the output's name with .png)")
-    fit.add_argument("--iterations", type=integer_argument(1, 200), default=12,
+    fit.add_argument("--iterations", type=integer_argument(1, 200), default=30,
                      help="least-squares evaluations at most (default %(default)s)")
     fit.add_argument("--jobs", type=integer_argument(1, 256), default=None,
                      help="replays at once on this machine (default: its CPUs)")
