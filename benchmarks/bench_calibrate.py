@@ -1,7 +1,7 @@
 """How well `bh8 calibrate` finds a hand's parameters, and how long its fit takes (issue 40).
 
-Per drawn hand (`bh8 calibrate draw --seed K`: each fitted parameter within ±30 % of its default,
-the gauges' offsets in 100..140; with `--everything` also the motor's peak torque, the links' mass,
+Per drawn hand (`bh8 calibrate draw --seed K`: each fitted parameter and the gauges' gain within
+±30 % of its default, the gauges' offsets in 100..140; with `--everything` also the motor's peak torque, the links' mass,
 the worm's slack and the no-load speed): `bh8 serve --hand-parameters hidden.toml` serves it (palm
 up with the calibration object, as docs/hardware.md asks, or `--mounting palm-down` without one),
 `bh8 calibrate record` runs the full excitation on it through the pty, and `bh8 calibrate fit` on
