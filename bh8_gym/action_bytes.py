@@ -39,6 +39,11 @@ def unit_to_byte_list(units: list[float], centres: list[float], halves: list[flo
             for u, centre, half in zip(units, centres, halves)]
 
 
+def byte_list_to_unit(values: list[int], centres: list[float], halves: list[float]) -> list[float]:
+    """`bytes_to_unit` on plain numbers (cast to float32 for the same action): the scripts' per-cycle path."""
+    return [(value - centre) / half for value, centre, half in zip(values, centres, halves)]
+
+
 def bytes_to_unit(values: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
     """Inverse of `unit_to_bytes` (up to rounding): integer control values -> floats in [-1, 1]."""
     centre = (low + high) / 2.0

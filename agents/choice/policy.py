@@ -27,7 +27,7 @@ import numpy as np
 from bh8_gym.action_bytes import bytes_to_unit
 from bh8_gym.agents.choice.features import ChoiceFeatures
 from bh8_gym.agents.choice.model import SuccessModel
-from bh8_gym.agents.grasps import CONTINUATIONS, FAMILY, SqueezeBaseline, _LoopScript, host_side, make_script
+from bh8_gym.agents.grasps import CONTINUATIONS, FAMILY, SqueezeBaseline, _LoopScript, clamp, host_side, make_script
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 FORMAT = "bh8-grasp-choice/1"
@@ -96,7 +96,7 @@ class Reopen(_LoopScript):
             self.start = [values[i] for i in self._positions]
         for index, (motor, name) in enumerate(self._control_fields):
             if motor == SPREAD_MOTOR:
-                self._bytes[index] = (int(np.clip(-self.spread_gain * values[self._spread], -127, 127))
+                self._bytes[index] = (int(clamp(-self.spread_gain * values[self._spread], -127, 127))
                                       if name == "LCV" else 255)
             else:
                 finger = FINGER_MOTORS.index(motor)
