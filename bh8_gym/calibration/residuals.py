@@ -3,7 +3,8 @@ each scaled to one unit of its own kind (`ResidualModel`).
 
 - finger positions: LFAP of each finger in the sweeps' lift phases (a weak drive lifting the finger
   against its weight), in % of the motor's range (loop_interface.FULL_RANGE_COUNTS);
-- spread positions: LFAP of the spread in the sweeps' lift and return phases, % of its range;
+- spread positions: LFAP of the spread in the sweeps' lift phases (where the fingers move smoothly;
+  not in `CLEAR_SEGMENT`, excitation.py), % of its range;
 - strains (reported, not fitted by the replays): each finger's mean gauge reading over each
   squeeze's hold, in counts (a finger pressing an object jitters by a few counts from cycle to cycle);
 - timing: how long each supervisory motion took, in 10 ms (a log of a real hand only: the
