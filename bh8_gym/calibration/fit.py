@@ -366,8 +366,8 @@ def fit(log, rollouts, iterations: int = 30, progress=None, clock=time.monotonic
             results[parameter.name] = _result(parameter, logs(at)[parameter.name], float(sigma[j]), correlated)
     others = ()
     if model.holds:  # the squeezes' loads, averaged over replays a billionth apart (residuals.py)
-        others = tuple(evaluator.signals([{**at, p.name: at.get(p.name, 0.0) + NOISE_PROBE * k}
-                                          for k in (1, 2, 3) for p in FIT_PARAMETERS[:1]]))
+        first = FIT_PARAMETERS[0].name
+        others = tuple(evaluator.signals([{**at, first: at.get(first, 0.0) + NOISE_PROBE * k} for k in (1, 2, 3)]))
     gain = model.strain_gain(best, others)
     results["strain_gain"] = _strain_gain_result(gain, bool(model.holds), defaults.strain_gain)
     fitted_gain = results["strain_gain"].value
