@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 from conftest import PROMPT, PtyLink, read_to_prompt
 from bh8_gym.realtime_codec import LoopLayout
 from bh8_gym.commands.serve import default_state_dir
+from bh8_gym.serial_server.pty import clients_of
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="pty tests need Linux /dev/pts")
 
@@ -1094,6 +1095,51 @@ def test_two_clients_opening_at_once_never_see_each_others_replies(tmp_path):
         _a_fresh_session_answers(link.device)
     finally:
         link.close()
+
+
+def test_a_client_that_forks_just_after_opening_keeps_its_session(tmp_path):
+    """A program that starts a worker or a subprocess just after opening the port (fork: the child
+    holds a copy of the descriptor until it closes it or execs) is one client, as on a real port.
+    The server looks while both processes hold the pty and serves it; it once counted the copy as
+    a second client and hung the pty up (the cause of a flaky test that ran a subprocess at once)."""
+    link = _serve(tmp_path / "store")
+    link.port.close()
+    try:
+        with _server_stopped(link):  # so that it looks only while the child holds the copy
+            fd = _raw_open(link.device)
+            release, hold = os.pipe()
+            child = os.fork()
+            if child == 0:
+                try:
+                    os.close(hold)
+                    os.read(release, 1)
+                finally:
+                    os._exit(0)
+            os.close(release)
+        try:
+            os.write(fd, b"1FGET DP\r")
+            assert _raw_read_until(fd, PROMPT, timeout=5.0) == b"1FGET DP\n\r8500\n\r=> "
+        finally:
+            os.close(hold)
+            os.waitpid(child, 0)
+            os.close(fd)
+    finally:
+        link.close()
+
+
+def test_a_descriptor_inherited_from_a_holder_is_not_a_second_client():
+    """`clients_of`: a descriptor that a process shares by number with an ancestor holding the
+    pty is that ancestor's; two descriptors in one process, or an unrelated process, stay two."""
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        me = os.getpid()
+        assert clients_of([(me, 7), (child.pid, 7)]) == [me]
+        assert clients_of([(child.pid, 7), (me, 7)]) == [me]
+        assert clients_of([(me, 7), (child.pid, 8)]) == [me, child.pid]
+        assert clients_of([(me, 7), (me, 9)]) == [me, me]
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_two_threads_opening_at_once_get_their_own_replies_or_a_hangup(tmp_path):

@@ -14,7 +14,8 @@ one line, one client at a time, and every open starts a clean session.
   session as below). `--link` is a fixed symlink to the printed device.
 - Exclusive: the server serves one pty (the session) at a time. A pty opened while another client
   has the port, or found with two clients in it (they opened the device in the instant before the
-  server moved it on: two opens, or a close after the last open, or two descriptors on it in /proc),
+  server moved it on: two opens, or a close after the last open, or two clients' descriptors on it in
+  /proc; a copy a client's child inherited by fork is the client's, `pty.clients_of`),
   is hung up before anything is read from it or written to it: those clients see the port go (EOF,
   EIO; an open after the mode change fails with EACCES) and may open it again. Nothing they wrote
   reaches the hand, and neither reads the other's replies.

@@ -213,10 +213,11 @@ class Pty:
         self.leader = self.follower = -1
 
 
-def descriptors_open_on(device: str) -> list[int]:
-    """The pid of each file descriptor that has `device` open, of the processes this user may look
-    into (all, for root), from /proc (empty where there is none). A name that matches is checked to
-    be the same node: a process in another container may have its own /dev/pts with the same numbers."""
+def descriptors_open_on(device: str) -> list[tuple[int, int]]:
+    """(pid, descriptor number) of each file descriptor that has `device` open, of the processes
+    this user may look into (all, for root), from /proc (empty where there is none). A name that
+    matches is checked to be the same node: a process in another container may have its own
+    /dev/pts with the same numbers."""
     try:
         node = os.stat(device)
         pids = [entry for entry in os.listdir("/proc") if entry.isdigit()]
@@ -233,10 +234,35 @@ def descriptors_open_on(device: str) -> list[int]:
             path = f"{directory}/{descriptor}"
             try:
                 if os.readlink(path) == device and os.path.samestat(os.stat(path), node):
-                    found.append(int(pid))
+                    found.append((int(pid), int(descriptor)))
             except OSError:
                 continue
     return found
+
+
+def _ancestors(pid: int) -> list[int]:
+    """The parent, grandparent, ... of `pid` (as far as /proc shows them)."""
+    chain = []
+    while len(chain) < _ANCESTRY_LIMIT:
+        try:
+            with open(f"/proc/{pid}/stat") as handle:
+                pid = int(handle.read().rsplit(")", 1)[1].split()[1])  # field 4, after the name
+        except (OSError, ValueError, IndexError):
+            break
+        if pid <= 1:
+            break
+        chain.append(pid)
+    return chain
+
+
+def clients_of(descriptors: list[tuple[int, int]]) -> list[int]:
+    """One pid per client among (pid, descriptor) pairs: a descriptor that a process inherited from
+    an ancestor holding the same number (fork keeps it: a client that starts a worker or a
+    subprocess just after opening the port) is that client's, not a second client's. Two
+    descriptors in one process are two opens (or a dup, which cannot be told from two opens)."""
+    held = set(descriptors)
+    return [pid for pid, number in descriptors
+            if not any((ancestor, number) in held for ancestor in _ancestors(pid))]
 
 
 # A descriptor appears in /proc a moment after the open that inotify reported: how often and how
@@ -244,14 +270,17 @@ def descriptors_open_on(device: str) -> list[int]:
 # (another user's: root may open our ptys).
 _DESCRIPTOR_COUNT_TRIES = 5
 _DESCRIPTOR_COUNT_PAUSE_S = 0.002
+# How far up the process tree an inherited descriptor's first holder is looked for.
+_ANCESTRY_LIMIT = 64
 
 
 def holders(pty: Pty) -> list[int | None]:
-    """The pid of each descriptor a held pty is open on (at least one entry; None: a process we
-    cannot see, such as another user's: root may open our ptys)."""
+    """The pid of each client that holds a held pty (at least one entry; None: a process we cannot
+    see, such as another user's: root may open our ptys). Processes that inherited a client's
+    descriptor are that client (`clients_of`)."""
     for _ in range(_DESCRIPTOR_COUNT_TRIES):
         found = descriptors_open_on(pty.device)
         if found:
-            return list(found)
+            return clients_of(found)
         time.sleep(_DESCRIPTOR_COUNT_PAUSE_S)
     return [None]
