@@ -8,6 +8,8 @@ is benchmarks/bench_calibrate.py.
 """
 from __future__ import annotations
 
+import copy
+
 import json
 import subprocess
 import sys
@@ -217,7 +219,7 @@ def test_the_squeezes_tell_the_gauges_gain(tmp_path):
     assert complete, reason
     log = read_log(path)
     model = ResidualModel(observed(log), log.hand_clock)
-    assert model.evidence.squeezes and len(model.holds) == 3
+    assert model.evidence.squeezes and len(model.holds) == 6  # three duties, twice
     replayed = replay(log, {"strain_offsets": REPLAY_OFFSETS})  # the hidden hand moves as the default one
     loads = [np.mean(replayed.strains[model._hold_mask(name)], axis=0) for name in model.holds]
     loads = (np.array(loads) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN
@@ -225,3 +227,33 @@ def test_the_squeezes_tell_the_gauges_gain(tmp_path):
     gain, sigma = model.strain_gain(replayed)
     assert gain == pytest.approx(76.0, rel=0.05) and sigma < 0.05 * gain
     assert model.offsets(replayed) == (131, 104, 117)
+    # A replay that lands differently in one squeeze (its loads 20 % higher there) moves the gain read
+    # against it alone, and the reported uncertainty grows to cover that (the replays' estimate).
+    other = copy.deepcopy(replayed)
+    last = model._hold_mask(model.holds[-1])
+    other.strains[last] = REPLAY_OFFSETS + 1.2 * (other.strains[last] - REPLAY_OFFSETS)
+    alone = model.strain_gain(other)[0]
+    both, spread = model.strain_gain(replayed, (other,))
+    assert alone < 0.97 * gain and alone < both < gain
+    assert spread >= abs(gain - alone) / 2 * np.sqrt(1.5) * 0.99 and spread > 2 * sigma
+
+
+def test_a_squeeze_keeps_each_fingers_command_when_it_touches():
+    """excitation.SqueezeLaw: a finger's velocity and gain are the squeeze's from the first block to
+    the end of the hold, whether it touched or not: the replay sends the recorded blocks, so a
+    switch at the recorded finger's touch would come early or late for a replayed finger."""
+    from bh8_gym.calibration.excitation import SQUEEZE_VELOCITY, SWEEP_HIGH, Squeeze, SqueezeLaw
+
+    law = SqueezeLaw(Squeeze("squeeze1", 100, 60), {1: 120, 2: 120, 3: 120})
+    touches = {1: 5, 2: 9, 3: 14}  # the cycle each finger's gauge rises (it keeps closing, slowly)
+    commands, phases = set(), []
+    for cycle in range(40):
+        positions = {1: SWEEP_HIGH + 100 + 30 * cycle, 2: SWEEP_HIGH + 100 + 30 * cycle,
+                     3: SWEEP_HIGH + 100 + 30 * cycle, 4: 600}
+        strains = {m: 120 + (10 if cycle >= touches[m] else 0) for m in (1, 2, 3)}
+        velocities, gains = law.control(positions, strains)
+        commands.add((tuple(velocities[:3]), tuple(gains[:3])))
+        phases.append(law.phase)
+    assert law.touched == {1, 2, 3} and phases[13] == "approach" and phases[14] == "hold" and phases[-1] == "hold"
+    assert commands == {((SQUEEZE_VELOCITY,) * 3, (100,) * 3)}
+

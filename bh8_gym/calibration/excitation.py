@@ -5,10 +5,12 @@ in motions whose outcome depends smoothly on them (the fit compares the log with
 
 1. set-up: factory parameters (FDEF), fingers holding their position (HOLD 1), HI, the LOOP flags
    (every motor, velocity and gain bytes out, strain and absolute position back);
-2. with a calibration object on the palm, in LOOP (`SqueezeLaw`): squeezes of it at three motor
-   duties (the gauges read the squeeze: their gain), each finger stopping if its gauge nears the
-   envelope's limit. First, while the object stands where it was put: later the spread swings the
-   lifted F1 and F2 over the palm's centre and pushes it off the palm (`CLEAR_SEGMENT`);
+2. with a calibration object on the palm, in LOOP (`SqueezeLaw`): six squeezes of it, at three
+   motor duties twice (the gauges read the squeeze: their gain), each finger closing fast to
+   SWEEP_HIGH, then at its squeeze's velocity and gain, and stopping if its gauge nears the
+   envelope's limit.
+   First, while the object stands where it was put: later the spread swings the lifted F1 and F2
+   over the palm's centre and pushes it off the palm (`CLEAR_SEGMENT`);
 3. supervisory moves of the fingers and the spread at two velocities (their durations time the
    motors on a real hand);
 4. in LOOP, with an object first one sweep that pushes it off the palm (`CLEAR_SEGMENT`, not
@@ -36,7 +38,9 @@ from dataclasses import dataclass
 from bh8_gym.protocol import FINGER_MOTORS, SPREAD_MOTOR
 
 EXCITATION_NAME = "bh8-excitation"
-EXCITATION_VERSION = 2  # 2: the squeezes before the moves and sweeps
+# 2: the squeezes before the moves and sweeps; 3: six squeezes, each finger switched to the squeeze's
+# velocity and gain where it moves freely, not when it touches (`SqueezeLaw`)
+EXCITATION_VERSION = 3
 BAUD = 38400  # RealTime cycles of about 7 ms (SPEC.md §6), the environments' rate
 LOOP_MOTORS = "1234"
 # The LOOP's flags on every motor (FSET before LOOP): velocity and gain bytes out; strain and
@@ -53,6 +57,9 @@ CREEP_VELOCITY = 1
 SWEEP_LOW, SWEEP_HIGH = 600, 6000  # finger counts: 1,800 counts short of where F3 meets the can (7,800)
 SPREAD_LOW, SPREAD_HIGH = 600, 2550  # counts: 600 short of its stops (0, 3150), which an overshoot must not meet
 SQUEEZE_VELOCITY = 16  # LCV: 1 count per sample; the duty is LCPG/4 x 1 of 127
+SQUEEZE_GAINS = (48, 100, 160)  # LCPG: duties of about 10, 20 and 30 %
+# LCV closing on the calibration object up to SWEEP_HIGH (clear of it), stiffly: below a breakaway's speed (§8: MCV 40)
+APPROACH_VELOCITY = 24
 SQUEEZE_STRAIN_BACK_OFF = 200  # a finger whose gauge reads more stops (the envelope stops at 230)
 OPEN_POSITION = 500
 SUPERVISORY_VELOCITIES = (40, 100)  # MCV/MOV: up to the default, as the envelope's LCV 100 is
@@ -80,7 +87,6 @@ PHASE_LIMIT_CYCLES = 400  # the longest a phase waits for a motor to reach its e
 # motors to the recorded positions where a lift or return starts, residuals.py compares by phase.
 PHASE_LIFT, PHASE_RETURN, PHASE_HOLD = "lift", "return", "hold"
 REST_PHASES = ("rest-lift", "rest-return")
-APPROACH_VELOCITY = 24  # LCV closing on the calibration object: below a breakaway's speed (§8: MCV 40)
 CONTACT_STRAIN = 4  # counts above the approach's first reading: the finger touches the object
 CONTACT_STALL_COUNTS = 10  # or it moved less than this in two cycles (its inner link met the object)
 APPROACH_LIMIT = 14_000  # a finger that got this far without touching the object missed it, and stops
@@ -132,7 +138,9 @@ def excitation_program(scale: float = 1.0, calibration_object: str | None = None
     # put it (the spread past about 1,000 counts swings F1 and F2 over it); CLEAR_SEGMENT then
     # pushes it off the palm before the compared sweeps.
     if calibration_object is not None:
-        for index, gain in enumerate((48, 100, 160)):
+        # Twice over: where a fingertip lands on the object scatters each squeeze's load, and the
+        # fit reads the gain's uncertainty off how the squeezes disagree (residuals.py).
+        for index, gain in enumerate(SQUEEZE_GAINS * 2):
             program.append(Squeeze(f"squeeze{index + 1}", gain, _cycles(150, scale)))
     program.append(Commands("moves", tuple(moves)))
     if calibration_object is not None:
@@ -222,11 +230,17 @@ class SweepLaw:
 
 
 class SqueezeLaw:
-    """A Squeeze's phases: "approach" (every finger closes at APPROACH_VELOCITY, stiffly, until its
-    gauge reads CONTACT_STRAIN above its first reading, then squeezes at SQUEEZE_VELOCITY with the
-    segment's gain; one whose gauge passes SQUEEZE_STRAIN_BACK_OFF stops), "hold" (the squeeze's
-    cycles once every finger touched, or PHASE_LIMIT_CYCLES), "release" (open to SWEEP_LOW); the
-    spread creeps."""
+    """A Squeeze's phases: "approach" (every finger closes at APPROACH_VELOCITY, stiffly, up to
+    SWEEP_HIGH, clear of the object, then at SQUEEZE_VELOCITY with the segment's gain until its
+    gauge reads CONTACT_STRAIN above its first reading or it stalls; one whose gauge passes
+    SQUEEZE_STRAIN_BACK_OFF stops), "hold" (the squeeze's cycles once every finger touched, or
+    PHASE_LIMIT_CYCLES), "release" (open to SWEEP_LOW); the spread creeps.
+
+    A finger's command changes where it moves freely, not when it touches (excitation 2 closed
+    fast and stiffly until then): the replay sends the recorded blocks, so a switch made at the
+    recorded finger's touch comes early or late for a replayed finger that lands a little
+    differently, and the stiff approach then pressed it in harder. The replays' loads came out up
+    to 25 % above the recorded hand's and the gain that much low (issue 40: seed 7)."""
 
     def __init__(self, squeeze: Squeeze, strains: dict[int, int]):
         self.squeeze = squeeze
@@ -265,7 +279,7 @@ class SqueezeLaw:
             elif motor in self.stopped:
                 velocities.append(0)
                 gains.append(self.squeeze.gain)
-            elif motor in self.touched:
+            elif positions[motor] >= SWEEP_HIGH or motor in self.touched:
                 velocities.append(SQUEEZE_VELOCITY)
                 gains.append(self.squeeze.gain)
             else:

@@ -91,6 +91,8 @@ class FitError(ValueError):
     """A log the fit cannot use, or a fit that does not replay its log (the message says which)."""
 
 
+# The excitation whose squeezes keep each finger's command when it touches (excitation.SqueezeLaw).
+STEADY_SQUEEZES_SINCE = 3
 STRAIN_GAIN_TELLS = "the gauges' readings squeezing the calibration object, against the replay's loads"
 
 
@@ -370,6 +372,10 @@ def fit(log, rollouts, iterations: int = 30, progress=None, clock=time.monotonic
         others = tuple(evaluator.signals([{**at, first: at.get(first, 0.0) + NOISE_PROBE * k} for k in (1, 2, 3)]))
     gain = model.strain_gain(best, others)
     results["strain_gain"] = _strain_gain_result(gain, bool(model.holds), defaults.strain_gain)
+    if model.holds and log.header.excitation_version < STEADY_SQUEEZES_SINCE:
+        notes.append(f"strain_gain: excitation {log.header.excitation_version}'s squeezes switch each finger to a "
+                     "weaker drive when it touches, which a replay cannot follow: the gain reads up to 25 % low; "
+                     "record again with this version for the gauges")
     fitted_gain = results["strain_gain"].value
     for name, why in TIED.items():
         notes.append(f"{name}: {why}")

@@ -18,7 +18,8 @@ The gauges enter linearly: reading = offset + gain x load (the torque about the 
 Each replay runs with `REPLAY_OFFSETS` and the default gain; the offsets that fit best are read off
 the rest phases (fingers still, nothing pressing: the median of the recorded reading minus the
 replay's load reading), the gain off the squeezes (`strain_gain`: the recorded readings above their
-offsets against the replay's loads, a line through the origin).
+offsets against the replays' loads, a line through the origin, with how far the recorded hand's
+landings on the object may put it off).
 """
 from __future__ import annotations
 
@@ -37,6 +38,11 @@ GAIN_LOAD_SPAN = 0.03  # N·m: squeezes whose loads span less than this tell no 
 TIMING_SCALE_S = 0.01
 MOVED_COUNTS = 300  # a motor that moved less than this in the phases that tell its parameters did not move
 STRAIN_EVIDENCE_COUNTS = 3  # a squeeze whose gauges moved less than this from rest tells nothing of their gain
+
+
+def _through_origin(load: np.ndarray, reading: np.ndarray, keep: np.ndarray) -> float:
+    """The slope of the line through the origin that fits `reading` against `load` where `keep`."""
+    return float(load[keep] @ reading[keep] / (load[keep] @ load[keep]))
 
 
 def _phase(name: str) -> str:
@@ -128,13 +134,20 @@ class ResidualModel:
     def strain_gain(self, replayed: Signals, others: tuple = ()) -> tuple[float, float] | None:
         """The gauges' gain (counts per N·m) and its standard deviation read off the squeezes'
         holds: each finger's mean recorded reading above its offset against the replay's mean load
-        (its reading above REPLAY_OFFSETS over REPLAY_GAIN), the loads averaged over `replayed` and
-        `others` (replays a billionth away: where a fingertip settles on the object, and so how the
-        squeeze's torque splits between the links, differs from one replay to the next by up to
-        10 %); None without squeezes whose loads span GAIN_LOAD_SPAN."""
+        (its reading above REPLAY_OFFSETS over REPLAY_GAIN), a line through the origin; None without
+        squeezes whose loads span GAIN_LOAD_SPAN.
+
+        Where a fingertip lands on the object, and so how the squeeze's torque splits between the
+        links, differs from one run to the next: a replay a billionth away (`others`) puts loads on
+        the gauges a few % apart, and the recorded run is one such landing. So the loads are
+        averaged over `replayed` and `others`, and the standard deviation is the largest of three
+        estimates of what the recorded landings do to the gain: the points' scatter about the line;
+        the squeezes' (a squeeze's fingers land together: a standard error robust to that, by
+        squeeze); and the replays' (the gain read against each replay's loads alone)."""
         if not self.holds:
             return None
         offsets = np.array(self.offsets(replayed), dtype=float)
+        replays = (replayed, *others)
         loads, readings = [], []
         for name in self.holds:
             mask = self._hold_mask(name)
@@ -142,19 +155,29 @@ class ResidualModel:
             usable = np.all((recorded > 0) & (recorded < 255), axis=1)  # a clipped reading says nothing
             if not usable.any():
                 continue
-            held = [np.nanmean(r.strains[mask][usable], axis=0) for r in (replayed, *others)]
-            loads.append((np.mean(held, axis=0) - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
+            held = np.array([np.nanmean(r.strains[mask][usable], axis=0) for r in replays])
+            loads.append((held - np.array(REPLAY_OFFSETS)) / REPLAY_GAIN)
             readings.append(np.nanmean(recorded[usable], axis=0) - offsets)
         if not loads:
             return None
-        load, reading = np.concatenate(loads), np.concatenate(readings)
-        keep = np.isfinite(load) & np.isfinite(reading)
-        load, reading = load[keep], reading[keep]
-        if load.size < 3 or np.ptp(load) < GAIN_LOAD_SPAN:
+        each = np.stack(loads, axis=1)  # (replays, squeezes, fingers)
+        load, reading = each.mean(axis=0), np.array(readings)
+        keep = np.all(np.isfinite(each), axis=0) & np.isfinite(reading)
+        if keep.sum() < 3 or np.ptp(load[keep]) < GAIN_LOAD_SPAN:
             return None
-        gain = float(load @ reading / (load @ load))
-        spread = float(np.sqrt(np.sum((reading - gain * load) ** 2) / (load.size - 1) / (load @ load)))
-        return gain, spread
+        gain = _through_origin(load, reading, keep)
+        weight = np.where(keep, load, 0.0)
+        residual = np.where(keep, reading - gain * load, 0.0)
+        norm = float(np.sum(weight ** 2))
+        estimates = [float(np.sqrt(np.sum(residual ** 2) / (keep.sum() - 1) / norm))]
+        squeezes = int(np.sum(keep.any(axis=1)))
+        if squeezes > 1:
+            by_squeeze = np.sum(weight * residual, axis=1)
+            estimates.append(float(np.sqrt(squeezes / (squeezes - 1) * np.sum(by_squeeze ** 2)) / norm))
+        if len(replays) > 1:
+            each_gain = [_through_origin(one, reading, keep) for one in each]
+            estimates.append(float(np.std(each_gain, ddof=1) * np.sqrt(1 + 1 / len(replays))))
+        return gain, max(estimates)
 
     def groups(self, replayed: Signals, gain: float = REPLAY_GAIN) -> dict[str, np.ndarray]:
         """The scaled residuals of one replay, by signal (module docstring); the squeezes' readings
