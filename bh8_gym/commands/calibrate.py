@@ -151,7 +151,7 @@ def _fit(args: argparse.Namespace) -> int:
         print(f"{name}: needs the calibrate extra ({error.name} is missing): pip install \"bh8-gym[calibrate]\"",
               file=sys.stderr)
         return 2
-    from bh8_gym.hand_file import HandFileError, HandParameters, write_hand_parameters
+    from bh8_gym.hand_file import HandParameters
     from bh8_gym.calibration.log_format import CalibrationLogError, MAX_LOG_BYTES, parse_log
     from bh8_gym.safe_files import read_bounded
     from bh8_gym.calibration.replay import ReplayMismatch, observed
@@ -199,14 +199,24 @@ def _fit(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 3
     hand = HandParameters(result.hand_values(), result.uncertainties(), fit_provenance(log, result))
-    try:
-        write_hand_parameters(args.output, hand, comment=f"bh8 calibrate fit {args.log}: the hand's parameters "
-                                                          "(docs/hardware.md)")
-    except (HandFileError, OSError) as error:
-        print(f"{name}: cannot write {args.output}: {error}", file=sys.stderr)
+    comment = f"bh8 calibrate fit {args.log}: the hand's parameters (docs/hardware.md)"
+    if not _write_hand(name, args.output, hand, comment):
         return 2
     print(f"written: {args.output} (read back and checked)")
     return 0
+
+
+def _write_hand(name: str, path, hand, comment: str) -> bool:
+    """Write a hand file (hand_file.write_hand_parameters: atomic, read back); False, said on stderr,
+    if it cannot be."""
+    from bh8_gym.hand_file import HandFileError, write_hand_parameters
+
+    try:
+        write_hand_parameters(path, hand, comment=comment)
+    except (HandFileError, OSError) as error:
+        print(f"{name}: cannot write {path}: {error}", file=sys.stderr)
+        return False
+    return True
 
 
 def _rollouts(args: argparse.Namespace, data: bytes, log_name: str):
@@ -242,16 +252,13 @@ class _progress_bar:
 def _draw(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from bh8_gym.hand_file import HandFileError, HandParameters, write_hand_parameters
+    from bh8_gym.hand_file import HandParameters
     from bh8_gym.calibration.practice import draw_hand
 
     values = draw_hand(np.random.default_rng(args.seed), everything=args.everything)
-    try:
-        write_hand_parameters(args.output, HandParameters(values),
-                              comment=f"bh8 calibrate draw --seed {args.seed}: a practice hand for "
-                                      "bh8 serve --hand-parameters (docs/hardware.md)")
-    except (HandFileError, OSError) as error:
-        print(f"bh8 calibrate draw: cannot write {args.output}: {error}", file=sys.stderr)
+    if not _write_hand("bh8 calibrate draw", args.output, HandParameters(values),
+                       f"bh8 calibrate draw --seed {args.seed}: a practice hand for bh8 serve --hand-parameters "
+                       "(docs/hardware.md)"):
         return 2
     print(f"bh8 calibrate draw: {args.output}")
     return 0
