@@ -42,17 +42,28 @@ def success_rate(job) -> float:
         env.close()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def comparison_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments of both benchmarks that set a calibrated simulator beside the drawn hand (this one
+    and bench_calibrated_squeeze.py): the drawn hand, its fit, and the episodes each hand runs."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--hidden", required=True, help="the drawn hand's file (the 'real' hand)")
     parser.add_argument("--calibrated", required=True, help="bh8 calibrate fit's hand file for it")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--objects", default="primitives-validation")
     parser.add_argument("--first-seed", type=int, default=20000)
     parser.add_argument("--jobs", type=int, default=2)
-    args = parser.parse_args()
+    return parser
+
+
+def three_hands(args: argparse.Namespace) -> dict:
+    """The hand file of each simulator compared (None: the defaults)."""
+    return {"nominal": None, "calibrated": args.calibrated, "real": args.hidden}
+
+
+def main() -> None:
+    args = comparison_parser(__doc__.splitlines()[0]).parse_args()
     grid = list(itertools.product(TARGETS, CLOSE_GAINS))
-    hands = {"nominal": None, "calibrated": args.calibrated, "real": args.hidden}
+    hands = three_hands(args)
     jobs = [(hand, grid, args.objects, args.episodes, args.first_seed) for hand in hands.values()]
     with ProcessPoolExecutor(args.jobs) as pool:
         rates = dict(zip(hands, pool.map(success_rate, jobs)))

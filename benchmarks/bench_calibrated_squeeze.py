@@ -22,10 +22,11 @@ Run: python benchmarks/bench_calibrated_squeeze.py --hidden hidden.toml --calibr
 """
 from __future__ import annotations
 
-import argparse
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+
+from bench_calibrated_grasp import comparison_parser, three_hands
 
 QUANTITIES = ("squeeze", "closed", "reading")
 
@@ -63,16 +64,10 @@ def episodes(job) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hidden", required=True, help="the drawn hand's file (the 'real' hand)")
-    parser.add_argument("--calibrated", required=True, help="bh8 calibrate fit's hand file for it")
-    parser.add_argument("--episodes", type=int, default=100)
-    parser.add_argument("--objects", default="primitives-validation")
-    parser.add_argument("--first-seed", type=int, default=20000)
+    parser = comparison_parser(__doc__.splitlines()[0])
     parser.add_argument("--close-gain", type=int, default=40)
-    parser.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
-    hands = {"nominal": None, "calibrated": args.calibrated, "real": args.hidden}
+    hands = three_hands(args)
     # Each hand's episodes split over the jobs (the same seeds on every hand).
     chunks = np.array_split(np.arange(args.episodes), max(1, args.jobs))
     jobs = [(hand, args.objects, len(chunk), args.first_seed + int(chunk[0]), args.close_gain)
