@@ -8,9 +8,8 @@ in motions whose outcome depends smoothly on them (the fit compares the log with
 2. with a calibration object on the palm, in LOOP (`SqueezeLaw`): six squeezes of it, at three
    motor duties twice (the gauges read the squeeze: their gain), each finger closing fast to
    SWEEP_HIGH, then at its squeeze's velocity and gain, and stopping if its gauge nears the
-   envelope's limit.
-   First, while the object stands where it was put: later the spread swings the lifted F1 and F2
-   over the palm's centre and pushes it off the palm (`CLEAR_SEGMENT`);
+   envelope's limit. First, while the object stands where it was put: later the spread swings the
+   lifted F1 and F2 over the palm's centre and pushes it off the palm (`CLEAR_SEGMENT`);
 3. supervisory moves of the fingers and the spread at two velocities (their durations time the
    motors on a real hand);
 4. in LOOP, with an object first one sweep that pushes it off the palm (`CLEAR_SEGMENT`, not
@@ -41,6 +40,7 @@ EXCITATION_NAME = "bh8-excitation"
 # 2: the squeezes before the moves and sweeps; 3: six squeezes, each finger switched to the squeeze's
 # velocity and gain where it moves freely, not when it touches (`SqueezeLaw`)
 EXCITATION_VERSION = 3
+STEADY_SQUEEZES_SINCE = 3  # the first version whose squeezes a replay can follow (`SqueezeLaw`)
 BAUD = 38400  # RealTime cycles of about 7 ms (SPEC.md §6), the environments' rate
 LOOP_MOTORS = "1234"
 # The LOOP's flags on every motor (FSET before LOOP): velocity and gain bytes out; strain and

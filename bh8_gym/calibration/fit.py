@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bh8_gym.calibration.excitation import STEADY_SQUEEZES_SINCE
 from bh8_gym.calibration.residuals import GAIN_LOAD_SPAN, REPLAY_OFFSETS, ResidualModel
 from bh8_gym.plant.parameters import PlantParameters
 
@@ -91,8 +92,6 @@ class FitError(ValueError):
     """A log the fit cannot use, or a fit that does not replay its log (the message says which)."""
 
 
-# The excitation whose squeezes keep each finger's command when it touches (excitation.SqueezeLaw).
-STEADY_SQUEEZES_SINCE = 3
 STRAIN_GAIN_TELLS = "the gauges' readings squeezing the calibration object, against the replay's loads"
 
 
